@@ -1,0 +1,253 @@
+"""`neurncd`: the offline tool. Everything the nodes do, on files, without DDS.
+
+Subcommands: synth, convert, info, train-backbone, run, demo, params, bench.
+Each long job shows progress and ends with a short summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from .core import config as config_mod
+from .core.params import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _overrides(pairs: list[str] | None) -> dict:
+    """``--set section.key=value`` pairs (values parsed as YAML scalars/lists)."""
+    out = {}
+    for pair in pairs or []:
+        if "=" not in pair:
+            raise ConfigError(f"--set {pair!r}: expected section.key=value")
+        key, raw = pair.split("=", 1)
+        out[key.strip()] = yaml.safe_load(raw)
+    return out
+
+
+def load_config(args: argparse.Namespace) -> config_mod.Config:
+    return config_mod.load(getattr(args, "config", None), _overrides(getattr(args, "set", None)))
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None,
+                   help="ROS 2 parameter file (default: the shipped config/neurncd.yaml)")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE",
+                   help="override one parameter, e.g. --set mapper.backend=reference")
+
+
+# ------------------------------------------------------------------ commands
+
+def cmd_params(args: argparse.Namespace) -> int:
+    if args.format == "markdown":
+        sys.stdout.write(config_mod.markdown_table())
+    else:
+        sys.stdout.write(config_mod.to_yaml(load_config(args)))
+    return 0
+
+
+def cmd_check_config(args: argparse.Namespace) -> int:
+    cfg = config_mod.load(args.file)
+    n = sum(len(v) for v in cfg.to_nested().values())
+    print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections)")
+    return 0
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .core.data import synth
+    from .core.params import build, to_dict
+
+    cfg = load_config(args)
+    scfg = build(type(cfg.synth), {**to_dict(cfg.synth),
+                                   **({"width": args.width} if args.width else {}),
+                                   **({"height": args.height} if args.height else {})},
+                 prefix="synth.")
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    frames = synth.generate(args.seed, args.frames, scfg)
+    frames = _progress(frames, args.frames, f"synth seed {args.seed}")
+    if args.format == "replica":
+        from .core.data.formats import write_replica
+        n = write_replica(out, frames)
+    else:
+        from .core.data.bag import write_bag
+        n = write_bag(out, frames, storage=args.format, topics=cfg.topics)
+    print(f"wrote {n} frames of seed {args.seed} ({scfg.width}x{scfg.height}, depth noise "
+          f"{scfg.depth_noise}) to {out} as {args.format} in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from .core.data import formats
+
+    opts = _overrides(args.opt)
+    t0 = time.perf_counter()
+    n = formats.convert(args.src, args.out, kind=args.kind, storage=args.storage,
+                        tf_parent=args.tf_parent, tf_child=args.tf_child, **opts)
+    print(f"converted {n} frames from {args.src} to {args.out} in "
+          f"{time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .core.data.bag import FrameReader
+
+    cfg = load_config(args)
+    reader = FrameReader(args.bag, topics=cfg.topics)
+    n, first = 0, None
+    for frame in reader:
+        first = first or frame
+        n += 1
+    print(f"{args.bag}: {n} synchronised frames")
+    if first is not None:
+        i = first.intrinsics
+        print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f}, ground truth: "
+              f"{'yes' if first.semantic is not None else 'no'}")
+    print("  " + reader.summary())
+    return 0
+
+
+def cmd_train_backbone(args: argparse.Namespace) -> int:
+    from .core.backbone import train
+    return int(train.main(args) or 0)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .core import pipeline
+
+    cfg = load_config(args)
+    result = pipeline.run_bag(args.bag, cfg, out_dir=args.out or cfg.run.out_dir)
+    print(pipeline.summary(result))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .core import pipeline
+
+    cfg = load_config(args)
+    result = pipeline.demo(cfg, out_dir=args.out, seed=args.seed, frames=args.frames)
+    print(pipeline.summary(result))
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    scripts = sorted((REPO / "bench").glob("*.py"))
+    scripts = [s for s in scripts if not s.name.startswith("_") and
+               (not args.names or s.stem in args.names)]
+    if not scripts:
+        print("no benchmark matched", file=sys.stderr)
+        return 2
+    failed = []
+    for s in scripts:
+        print(f"== bench/{s.name}", flush=True)
+        if subprocess.call([sys.executable, str(s)], cwd=REPO) != 0:
+            failed.append(s.name)
+    print(f"benchmarks: {len(scripts) - len(failed)} ran, {len(failed)} failed "
+          f"{failed if failed else ''}; results in bench/results/")
+    return 1 if failed else 0
+
+
+def _progress(it, total: int, desc: str):
+    from tqdm import tqdm
+    return tqdm(it, total=total, desc=desc, unit="frame", leave=False)
+
+
+# ------------------------------------------------------------------ parser
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="neurncd", description="NeurNCD offline tool: synthetic scenes, dataset "
+        "conversion, backbone training, the full pipeline on a bag, and benchmarks.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("params", help="print every parameter (YAML with docs, or the "
+                       "README's markdown table)")
+    p.add_argument("--format", choices=("yaml", "markdown"), default="yaml")
+    _add_config_args(p)
+    p.set_defaults(func=cmd_params)
+
+    p = sub.add_parser("check-config", help="validate a parameter file")
+    p.add_argument("file")
+    p.set_defaults(func=cmd_check_config)
+
+    p = sub.add_parser("synth", help="generate a synthetic RGB-D scene with ground truth")
+    p.add_argument("--seed", type=int, required=True)
+    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--out", required=True, help="bag path (mcap/sqlite3) or Replica folder")
+    p.add_argument("--format", choices=("mcap", "sqlite3", "replica"), default="mcap")
+    p.add_argument("--width", type=int, default=None)
+    p.add_argument("--height", type=int, default=None)
+    _add_config_args(p)
+    p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("convert", help="convert a dataset folder or a /tf bag into a bag "
+                       "in the topic contract")
+    p.add_argument("src")
+    p.add_argument("--out", required=True)
+    p.add_argument("--kind", default="auto",
+                   help="auto, replica, tum, posetxt, redwood, or bag (a bag with /tf)")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame")
+    p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame")
+    p.add_argument("--opt", action="append", metavar="KEY=VALUE",
+                   help="reader option, e.g. --opt depth_scale=5000 --opt fx=525")
+    p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("info", help="summarise a bag: synchronised frames and drops")
+    p.add_argument("bag")
+    _add_config_args(p)
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("train-backbone", help="train the default RGB-D backbone on "
+                       "synthetic scenes (9 known classes, novel masked out)")
+    try:
+        from .core.backbone import train
+        train.add_arguments(p)
+    except ImportError:  # pragma: no cover - partial installs
+        pass
+    p.set_defaults(func=cmd_train_backbone)
+
+    p = sub.add_parser("run", help="run backbone, mapper and discovery on a bag without "
+                       "DDS; evaluates if the bag carries ground truth")
+    p.add_argument("--bag", required=True)
+    p.add_argument("--out", default=None, help="output folder (default run.out_dir)")
+    _add_config_args(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="make a synthetic scene and run the whole pipeline on "
+                       "it; writes overlays and metrics")
+    p.add_argument("--out", default="out/demo")
+    p.add_argument("--seed", type=int, default=1001)
+    p.add_argument("--frames", type=int, default=90)
+    _add_config_args(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="run benchmarks (bench/*.py); each writes "
+                       "bench/results/<name>.json")
+    p.add_argument("names", nargs="*", help="benchmark names (default: all)")
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except ConfigError as err:
+        print(f"neurncd {args.command}: configuration error: {err}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError) as err:
+        print(f"neurncd {args.command}: error: {err}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""ROS-free science core: numpy/torch only, importable without rclpy."""

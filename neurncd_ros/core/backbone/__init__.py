@@ -1,0 +1,1 @@
+"""Semantic embedding backbones: ESANet R34-NBt1D and the default small model."""

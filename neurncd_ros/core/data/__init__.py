@@ -1,0 +1,1 @@
+"""Datasets: synthetic scene generator, real-format readers, ROS 2 bag I/O."""

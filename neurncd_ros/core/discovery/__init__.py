@@ -1,0 +1,1 @@
+"""Discovery: geometric segmentation, feature modulation, Markov clustering, labels, metrics."""

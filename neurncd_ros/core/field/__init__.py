@@ -1,0 +1,1 @@
+"""Embedding-NeRF: fields, samplers, renderer, losses, keyframe buffer and mapper."""

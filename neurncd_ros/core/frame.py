@@ -1,0 +1,46 @@
+"""The RGB-D frame every part of the core passes around."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .camera import Intrinsics, check_pose
+
+
+@dataclasses.dataclass
+class Frame:
+    """One synchronised RGB-D observation with its camera pose.
+
+    - ``rgb``: (H, W, 3) uint8 in RGB order;
+    - ``depth``: (H, W) float32 metric z-depth, 0 where there is no measurement;
+    - ``pose``: 4x4 float64 camera-to-world, OpenCV optical axes;
+    - ``semantic`` / ``instance``: optional (H, W) uint16 ground truth
+      (NYU-13 ids, 0 void; instance ids, 0 none).
+    """
+
+    stamp_ns: int
+    rgb: np.ndarray
+    depth: np.ndarray
+    pose: np.ndarray
+    intrinsics: Intrinsics
+    semantic: np.ndarray | None = None
+    instance: np.ndarray | None = None
+
+    def validate(self) -> "Frame":
+        """Raise ValueError naming the problem if the frame is inconsistent."""
+        h, w = self.intrinsics.height, self.intrinsics.width
+        if self.rgb.shape != (h, w, 3) or self.rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be ({h}, {w}, 3) uint8, got {self.rgb.shape} "
+                             f"{self.rgb.dtype}")
+        if self.depth.shape != (h, w) or self.depth.dtype != np.float32:
+            raise ValueError(f"depth must be ({h}, {w}) float32, got {self.depth.shape} "
+                             f"{self.depth.dtype}")
+        for name in ("semantic", "instance"):
+            img = getattr(self, name)
+            if img is not None and (img.shape != (h, w) or img.dtype != np.uint16):
+                raise ValueError(f"{name} must be ({h}, {w}) uint16, got {img.shape} "
+                                 f"{img.dtype}")
+        self.pose = check_pose(self.pose)
+        return self

@@ -1,0 +1,219 @@
+"""The one message-conversion module: ROS messages <-> numpy.
+
+Duck-typed on purpose: the same functions read rclpy messages (live topics)
+and rosbags messages (offline bags), so neither rclpy nor rosbags is imported
+here and the conversion is tested once. Building a message is left to the
+caller, who passes the dict of fields returned here to its own message type.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import Any
+
+import numpy as np
+
+from .core.camera import Intrinsics, check_pose, matrix_to_quat, quat_to_matrix
+
+
+class MessageError(ValueError):
+    """A message cannot be converted; the text names the topic and the problem."""
+
+
+_FIXED = {
+    "rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "mono8": (np.uint8, 1),
+    "8UC1": (np.uint8, 1), "8UC3": (np.uint8, 3),
+    "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1),
+}
+_FLOAT_RE = re.compile(r"^32FC(\d+)$")
+
+SUPPORTED_ENCODINGS = ("rgb8", "bgr8", "mono8", "8UC1", "8UC3", "mono16", "16UC1",
+                       "32FC<S>")
+
+
+def _where(topic: str) -> str:
+    return f"{topic}: " if topic else ""
+
+
+def encoding_layout(encoding: str, topic: str = "") -> tuple[np.dtype, int]:
+    """(dtype, channels) of a supported image encoding."""
+    if encoding in _FIXED:
+        dt, ch = _FIXED[encoding]
+        return np.dtype(dt), ch
+    m = _FLOAT_RE.match(encoding or "")
+    if m and int(m.group(1)) >= 1:
+        return np.dtype(np.float32), int(m.group(1))
+    raise MessageError(f"{_where(topic)}unsupported image encoding {encoding!r}; supported: "
+                       + ", ".join(SUPPORTED_ENCODINGS))
+
+
+def _as_bytes(data: Any) -> np.ndarray:
+    if isinstance(data, np.ndarray):
+        return data.view(np.uint8).reshape(-1)
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return np.frombuffer(data, dtype=np.uint8)
+    # rclpy exposes uint8[] as array.array('B') or a list.
+    return np.frombuffer(bytes(data), dtype=np.uint8) if not hasattr(data, "tobytes") \
+        else np.frombuffer(data.tobytes(), dtype=np.uint8)
+
+
+def image_to_array(msg: Any, topic: str = "") -> np.ndarray:
+    """sensor_msgs/Image to an array: (H, W), (H, W, 3) or (H, W, S), native byte order.
+
+    Honours row padding (``step``) and ``is_bigendian``. The result owns its
+    memory (safe to keep after the message is gone).
+    """
+    h, w, enc, step = int(msg.height), int(msg.width), str(msg.encoding), int(msg.step)
+    dtype, ch = encoding_layout(enc, topic)
+    if h <= 0 or w <= 0:
+        raise MessageError(f"{_where(topic)}image has empty size {w}x{h}")
+    row = w * ch * dtype.itemsize
+    if step < row:
+        raise MessageError(f"{_where(topic)}step {step} is smaller than width*channels*bytes "
+                           f"= {row} for {w}x{h} {enc}")
+    raw = _as_bytes(msg.data)
+    if raw.size != step * h:
+        raise MessageError(f"{_where(topic)}data has {raw.size} bytes, expected step*height = "
+                           f"{step}*{h} = {step * h} for {enc}")
+    rows = raw.reshape(h, step)[:, :row]
+    big = bool(msg.is_bigendian)
+    dt = dtype.newbyteorder(">" if big else "<") if dtype.itemsize > 1 else dtype
+    arr = np.ascontiguousarray(rows).view(dt).reshape(h, w, ch)
+    arr = arr.astype(dtype, copy=True)  # native order, owned copy
+    return arr[:, :, 0] if ch == 1 else arr
+
+
+def image_fields(arr: np.ndarray, encoding: str, topic: str = "") -> dict[str, Any]:
+    """Fields of a sensor_msgs/Image holding ``arr`` (little endian, no padding)."""
+    dtype, ch = encoding_layout(encoding, topic)
+    arr = np.asarray(arr)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or arr.shape[2] != ch:
+        raise MessageError(f"{_where(topic)}array of shape {arr.shape} does not fit encoding "
+                           f"{encoding} ({ch} channel(s))")
+    if arr.dtype != dtype:
+        if dtype.kind != "f" and arr.dtype.kind == "f":
+            raise MessageError(f"{_where(topic)}refusing to cast float array to {encoding}")
+        arr = arr.astype(dtype)
+    h, w = arr.shape[:2]
+    data = np.ascontiguousarray(arr.astype(dtype.newbyteorder("<"), copy=False))
+    return {"height": h, "width": w, "encoding": encoding, "is_bigendian": 0,
+            "step": w * ch * dtype.itemsize, "data": data.view(np.uint8).reshape(-1)}
+
+
+def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
+    """Colour image message (rgb8 or bgr8) to (H, W, 3) uint8 RGB."""
+    if msg.encoding not in ("rgb8", "bgr8"):
+        raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
+                           f"{msg.encoding!r}")
+    arr = image_to_array(msg, topic)
+    return arr[:, :, ::-1].copy() if msg.encoding == "bgr8" else arr
+
+
+def depth_from_image(msg: Any, topic: str = "") -> np.ndarray:
+    """Depth message (16UC1/mono16 millimetres or 32FC1 metres) to float32 metres.
+
+    Non-finite and negative values become 0 (no measurement), as in the
+    16-bit convention, so downstream code has one invalid marker.
+    """
+    enc = msg.encoding
+    if enc in ("16UC1", "mono16"):
+        return image_to_array(msg, topic).astype(np.float32) / np.float32(1000.0)
+    if enc == "32FC1":
+        d = image_to_array(msg, topic)
+        bad = ~np.isfinite(d) | (d < 0)
+        if bad.any():
+            d = d.copy()
+            d[bad] = 0.0
+        return d
+    raise MessageError(f"{_where(topic)}depth image must be 16UC1 (mm) or 32FC1 (m), got "
+                       f"{enc!r}")
+
+
+def depth_fields(depth_m: np.ndarray, encoding: str = "16UC1", topic: str = ""
+                 ) -> dict[str, Any]:
+    """Image fields for a metric depth array, as 16UC1 millimetres or 32FC1 metres."""
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    if encoding == "16UC1":
+        mm = np.where(np.isfinite(depth_m) & (depth_m > 0), np.round(depth_m * 1000.0), 0)
+        if mm.max(initial=0) > 65535:
+            raise MessageError(f"{_where(topic)}depth above 65.535 m does not fit 16UC1")
+        return image_fields(mm.astype(np.uint16), "16UC1", topic)
+    if encoding == "32FC1":
+        return image_fields(depth_m, "32FC1", topic)
+    raise MessageError(f"{_where(topic)}depth encoding must be 16UC1 or 32FC1, got "
+                       f"{encoding!r}")
+
+
+def camera_info_to_intrinsics(msg: Any, topic: str = "") -> Intrinsics:
+    """sensor_msgs/CameraInfo to Intrinsics (uses K; distortion must be none/zero)."""
+    k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
+    if k.size != 9:
+        raise MessageError(f"{_where(topic)}camera info K has {k.size} values, expected 9")
+    d = np.asarray(getattr(msg, "d", []), dtype=np.float64)
+    if d.size and np.any(np.abs(d) > 1e-9):
+        raise MessageError(f"{_where(topic)}distortion {d.tolist()} is not supported: "
+                           "rectify images first (images must be undistorted)")
+    try:
+        return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                          int(msg.width), int(msg.height))
+    except ValueError as err:
+        raise MessageError(f"{_where(topic)}{err}") from None
+
+
+def camera_info_fields(intr: Intrinsics) -> dict[str, Any]:
+    """Fields of a sensor_msgs/CameraInfo for an undistorted pinhole camera."""
+    k = intr.K
+    p = np.zeros((3, 4))
+    p[:, :3] = k
+    return {"height": intr.height, "width": intr.width, "distortion_model": "plumb_bob",
+            "d": np.zeros(5), "k": k.reshape(-1), "r": np.eye(3).reshape(-1),
+            "p": p.reshape(-1)}
+
+
+def pose_to_matrix(msg: Any, topic: str = "") -> np.ndarray:
+    """PoseStamped, Pose, TransformStamped or Transform to a 4x4 matrix."""
+    obj = msg
+    for attr in ("pose", "transform"):
+        if hasattr(obj, attr):
+            obj = getattr(obj, attr)
+            break
+    if hasattr(obj, "position"):
+        t, q = obj.position, obj.orientation
+    elif hasattr(obj, "translation"):
+        t, q = obj.translation, obj.rotation
+    else:
+        raise MessageError(f"{_where(topic)}message has no pose or transform")
+    vals = [t.x, t.y, t.z, q.x, q.y, q.z, q.w]
+    if not all(math.isfinite(v) for v in vals):
+        raise MessageError(f"{_where(topic)}pose has non-finite values {vals}")
+    n = math.sqrt(q.x ** 2 + q.y ** 2 + q.z ** 2 + q.w ** 2)
+    if abs(n - 1.0) > 1e-3:
+        raise MessageError(f"{_where(topic)}orientation quaternion has norm {n:.6f}, "
+                           "expected 1")
+    T = np.eye(4)
+    T[:3, :3] = quat_to_matrix(q.x, q.y, q.z, q.w)
+    T[:3, 3] = [t.x, t.y, t.z]
+    return T
+
+
+def matrix_to_pose_fields(T: np.ndarray, topic: str = "") -> dict[str, tuple]:
+    """4x4 pose to position (x, y, z) and orientation (x, y, z, w)."""
+    try:
+        T = check_pose(T)
+    except ValueError as err:
+        raise MessageError(f"{_where(topic)}{err}") from None
+    return {"position": tuple(float(v) for v in T[:3, 3]),
+            "orientation": matrix_to_quat(T[:3, :3])}
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """builtin_interfaces/Time to integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> tuple[int, int]:
+    """Integer nanoseconds to (sec, nanosec)."""
+    return int(ns) // 1_000_000_000, int(ns) % 1_000_000_000

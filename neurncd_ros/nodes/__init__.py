@@ -1,0 +1,1 @@
+"""Thin rclpy adapters around the core: parameters in, messages converted, core called."""

@@ -1,0 +1,131 @@
+"""Discovery node: depth + rendered embedding + entropy in, known and novel labels out.
+
+Pairs each depth frame with the mapper's rendered embedding and entropy of the
+same stamp, runs the core ``Discoverer`` (segmentation, feature modulation,
+Markov clustering, stable ids) and publishes the label image, its colour
+rendering and the class table (transient local, so late subscribers get it).
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+
+from .. import msgconv
+from ..core import classes
+from .common import (StampMatcher, declare_config, header_ns, image_msg, latched_qos,
+                     output_qos, run_node, sensor_qos)
+
+DESCRIPTION = ("Segments depth into convex segments, clusters them on the rendered "
+               "embedding and entropy, and publishes /neurncd/labels (mono16), "
+               "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON).")
+
+
+def fit_to(arr: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize a rendering to the depth frame's size (bilinear; channels kept)."""
+    if arr.shape[:2] == (height, width):
+        return arr
+    out = cv2.resize(arr, (width, height), interpolation=cv2.INTER_LINEAR)
+    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
+
+
+def make_node():
+    from rclpy.node import Node
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
+
+    from ..core.discovery.labeller import Discoverer
+
+    class DiscoveryNode(Node):
+        def __init__(self) -> None:
+            super().__init__("discovery",
+                             automatically_declare_parameters_from_overrides=True)
+            self.cfg = declare_config(self)
+            node_cfg, self.topics = self.cfg.discovery_node, self.cfg.topics
+            self.throttle = node_cfg.log_throttle_s
+            self.discoverer = None
+            self.intrinsics = None
+            self.matcher = StampMatcher(("depth", "embedding", "entropy"),
+                                        int(node_cfg.sync_tolerance_ms * 1e6),
+                                        node_cfg.queue_size)
+            q = sensor_qos(node_cfg.queue_size)
+            self.create_subscription(Image, self.topics.depth,
+                                     lambda m: self._offer("depth", m), q)
+            self.create_subscription(Image, self.topics.rendered_embedding,
+                                     lambda m: self._offer("embedding", m), q)
+            self.create_subscription(Image, self.topics.entropy,
+                                     lambda m: self._offer("entropy", m), q)
+            self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
+                                     sensor_qos())
+            self.pub_labels = self.create_publisher(Image, self.topics.labels, output_qos())
+            self.pub_color = self.create_publisher(Image, self.topics.labels_color,
+                                                   output_qos())
+            self.pub_classes = self.create_publisher(String, self.topics.classes,
+                                                     latched_qos())
+            self.labelled = self.skipped = 0
+
+        def on_info(self, msg) -> None:
+            try:
+                self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
+            except ValueError as err:
+                self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
+
+        def _offer(self, slot: str, msg) -> None:
+            match = self.matcher.add(slot, header_ns(msg), msg)
+            if match is None:
+                return
+            try:
+                self._label(*match)
+            except ValueError as err:
+                self.skipped += 1
+                self.get_logger().warning(f"skipped frame {match[0]}: {err}",
+                                          throttle_duration_sec=self.throttle)
+
+        def _label(self, stamp: int, group: dict) -> None:
+            if self.intrinsics is None:
+                raise ValueError(f"no camera info yet on {self.topics.camera_info}")
+            depth_msg = group["depth"]
+            depth = msgconv.depth_from_image(depth_msg, self.topics.depth)
+            emb = msgconv.image_to_array(group["embedding"], self.topics.rendered_embedding)
+            ent = msgconv.image_to_array(group["entropy"], self.topics.entropy)
+            if emb.ndim == 2:
+                emb = emb[:, :, None]
+            if ent.ndim != 2:
+                raise ValueError(f"{self.topics.entropy}: expected 32FC1, got "
+                                 f"{group['entropy'].encoding}")
+            intr = self.intrinsics
+            if depth.shape != intr.shape:
+                raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]} but camera "
+                                 f"info says {intr.width}x{intr.height}")
+            h, w = depth.shape
+            emb, ent = fit_to(emb, h, w), fit_to(ent, h, w)
+            if self.discoverer is None:
+                channel_to_id = classes.channel_to_id(emb.shape[2])
+                self.discoverer = Discoverer(self.cfg.discovery, channel_to_id,
+                                             mcl_cfg=self.cfg.mcl,
+                                             seg_cfg=self.cfg.segmentation,
+                                             mod_cfg=self.cfg.modulation)
+            labels = self.discoverer.process(depth, intr, emb, ent, stamp)
+            frame_id = depth_msg.header.frame_id
+            self.pub_labels.publish(image_msg(labels, "mono16", stamp, frame_id,
+                                              self.topics.labels))
+            self.pub_color.publish(image_msg(classes.colourise(labels), "rgb8", stamp,
+                                             frame_id, self.topics.labels_color))
+            self.pub_classes.publish(String(data=json.dumps(
+                {str(k): v for k, v in self.discoverer.classes().items()})))
+            self.labelled += 1
+
+        def close(self) -> None:
+            self.get_logger().info(f"frames labelled {self.labelled}, skipped {self.skipped}")
+
+    return DiscoveryNode()
+
+
+def main(argv=None) -> int:
+    return run_node(make_node, "discovery", DESCRIPTION, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
