@@ -83,16 +83,21 @@ class ReplayConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
-    """Settings of the offline path (`neurncd run`), which drives the same core without DDS."""
+    """Settings of the offline path (`neurncd run`), which drives the same core without DDS.
 
-    train_seconds_per_frame: float = param(0.4, "mapper training time budget per input "
-                                           "frame offline", lo=0.0, hi=60.0, unit="s")
-    warmup_seconds: float = param(20.0, "mapper training before the first rendering",
-                                  lo=0.0, hi=3600.0, unit="s")
-    label_every: int = param(10, "label one frame in this many (others only feed the map)",
-                             lo=1, hi=10000)
+    Offline, training is counted in iterations rather than seconds so that a
+    run gives the same result on a slow and a fast machine.
+    """
+
+    train_iterations_per_frame: int = param(8, "mapper iterations after each input frame",
+                                            lo=0, hi=10_000)
+    warmup_iterations: int = param(300, "mapper iterations after the first frame before "
+                                   "anything is labelled", lo=0, hi=1_000_000)
+    label_every: int = param(5, "label one frame in this many (all frames feed the map)",
+                             lo=1, hi=10_000)
     max_frames: int = param(0, "stop after this many frames (0 = all)", lo=0, hi=10_000_000)
-    out_dir: str = param("out/run", "where labels, overlays and metrics are written")
+    overlays: int = param(6, "how many labelled frames get a PNG overlay", lo=0, hi=10_000)
+    out_dir: str = param("out/run", "where overlays and metrics.json are written")
 
 
 # Section name -> (module, class). Core sections are imported lazily so this
