@@ -7,7 +7,6 @@ Each long job shows progress and ends with a short summary.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
@@ -45,8 +44,21 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 # ------------------------------------------------------------------ commands
 
+def update_docs() -> None:
+    """Regenerate config/neurncd.yaml and the README's parameter table from the schema."""
+    (REPO / "config" / "neurncd.yaml").write_text(config_mod.to_yaml(config_mod.default()))
+    readme = REPO / "README.md"
+    text = readme.read_text()
+    start, end = "<!-- params:start -->\n", "<!-- params:end -->"
+    i, j = text.index(start) + len(start), text.index(end)
+    readme.write_text(text[:i] + config_mod.markdown_table() + text[j:])
+
+
 def cmd_params(args: argparse.Namespace) -> int:
-    if args.format == "markdown":
+    if args.update_docs:
+        update_docs()
+        print("updated config/neurncd.yaml and the README parameter table")
+    elif args.format == "markdown":
         sys.stdout.write(config_mod.markdown_table())
     else:
         sys.stdout.write(config_mod.to_yaml(load_config(args)))
@@ -170,6 +182,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("params", help="print every parameter (YAML with docs, or the "
                        "README's markdown table)")
     p.add_argument("--format", choices=("yaml", "markdown"), default="yaml")
+    p.add_argument("--update-docs", action="store_true",
+                   help="rewrite config/neurncd.yaml and the README table (developers)")
     _add_config_args(p)
     p.set_defaults(func=cmd_params)
 

@@ -1,0 +1,108 @@
+"""The nodes in real rclpy processes over local DDS: answers, stamps, sizes, bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from neurncd_ros import msgconv
+from neurncd_ros.core.camera import Intrinsics
+
+from rosutil import REPO, apply_ros_env, ros_env, spin_until, start, stop
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def ros_node(request):
+    """An rclpy node in this test process, on the test's private domain."""
+    domain = 150 + (hash(request.node.name) % 50)
+    apply_ros_env(domain)
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node("test_client")
+    yield node, domain
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def _frame_msgs(stamp_ns: int, w: int = 320, h: int = 240, depth_w: int | None = None):
+    from sensor_msgs.msg import CameraInfo
+
+    from neurncd_ros.nodes.common import image_msg
+
+    rng = np.random.default_rng(stamp_ns % 1000)
+    rgb = rng.integers(0, 255, (h, w, 3), dtype=np.uint8)
+    dw = depth_w or w
+    depth = (1000 + 2000 * rng.random((h, dw))).astype(np.uint16)
+    color = image_msg(rgb, "rgb8", stamp_ns, "camera")
+    dmsg = image_msg(depth, "16UC1", stamp_ns, "camera")
+    info = CameraInfo()
+    f = msgconv.camera_info_fields(Intrinsics.from_hfov(w, h, 90.0))
+    info.height, info.width, info.distortion_model = f["height"], f["width"], f["distortion_model"]
+    info.d, info.k, info.r, info.p = (list(map(float, f[k])) for k in ("d", "k", "r", "p"))
+    info.header.stamp.sec, info.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
+    return color, dmsg, info
+
+
+def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_path):
+    node, domain = ros_node
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neurncd_ros.nodes.common import output_qos, sensor_qos
+
+    log = tmp_path / "embedding.log"
+    proc = start(["-m", "neurncd_ros.nodes.embedding"], ros_env(domain), log)
+    got = []
+    try:
+        node.create_subscription(Image, "/neurncd/embedding", got.append, sensor_qos(10))
+        pubs = {t: node.create_publisher(m, t, output_qos())
+                for t, m in (("/camera/color/image_raw", Image),
+                             ("/camera/depth/image_raw", Image),
+                             ("/camera/color/camera_info", CameraInfo))}
+        assert spin_until(node, lambda: all(p.get_subscription_count() for p in pubs.values()),
+                          60), log.read_text()
+
+        def send(stamp, depth_w=None):
+            c, d, i = _frame_msgs(stamp, depth_w=depth_w)
+            pubs["/camera/color/camera_info"].publish(i)
+            pubs["/camera/color/image_raw"].publish(c)
+            pubs["/camera/depth/image_raw"].publish(d)
+
+        # A frame whose depth does not match colour is skipped with a log, not a crash.
+        send(2_000_000_000, depth_w=200)
+        spin_until(node, lambda: False, 1.0)
+        stamp = 2_500_000_000
+        for _ in range(10):
+            send(stamp)
+            if spin_until(node, lambda: any(msgconv.stamp_to_ns(m.header.stamp) == stamp
+                                            for m in got), 10):
+                break
+        match = [m for m in got if msgconv.stamp_to_ns(m.header.stamp) == stamp]
+        assert match, log.read_text()
+        emb = msgconv.image_to_array(match[0], "/neurncd/embedding")
+        assert match[0].encoding == "32FC9"
+        assert emb.shape == (240, 320, 9) and emb.dtype == np.float32
+        assert np.isfinite(emb).all() and emb.std() > 0
+        assert not any(msgconv.stamp_to_ns(m.header.stamp) == 2_000_000_000 for m in got)
+        assert proc.poll() is None, "the node died"
+    finally:
+        stop(proc)
+    text = log.read_text()
+    assert "skipped frame 2000000000" in text and "registered to colour" in text
+
+
+@pytest.mark.parametrize("args, expect", [
+    (["-p", "mapper.backend:=gpu"], "mapper.backend: 'gpu' is not allowed; allowed: one of"),
+    (["-p", "mapper.no_such:=1"], "mapper.no_such: unknown parameter"),
+])
+def test_bad_parameter_stops_node_with_clear_message(args, expect):
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args", *args],
+                       env=ros_env(199), capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert expect in r.stderr
+    assert "Traceback" not in r.stderr
