@@ -1,0 +1,716 @@
+"""ROS 2 bag I/O (rosbags, no rclpy): write Frames, read synchronised Frames, raw replay.
+
+- :func:`write_bag` writes colour, depth, camera info, pose (topic and/or /tf)
+  and optional semantic / instance ground truth, stamped with ``frame.stamp_ns``;
+- :class:`FrameReader` re-assembles Frames from a bag by header stamp (exact
+  or nearest within ``max_stamp_skew_ns``; poses optionally interpolated),
+  taking the pose from the pose topic or from /tf (+ /tf_static) chains, and
+  lists what it had to drop;
+- :func:`iter_raw` yields raw CDR messages for the replay node;
+  :func:`write_messages` writes arbitrary (topic, type, stamp, msg) items.
+
+All message <-> numpy conversion goes through :mod:`neurncd_ros.msgconv`.
+Every failure to read a bag (missing, truncated, corrupt) raises
+:class:`BagError` naming the file.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import shutil
+import struct
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from ...msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsics,
+                        depth_fields, depth_from_image, image_fields, image_to_array,
+                        matrix_to_pose_fields, ns_to_stamp, pose_to_matrix, rgb_from_image,
+                        stamp_to_ns)
+from ..camera import Intrinsics, check_pose, invert_pose
+from .formats import nearest, pose_at
+from ..frame import Frame
+from ..params import param
+
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STORAGES = ("mcap", "sqlite3")
+
+
+class BagError(ValueError):
+    """A bag cannot be read or written; the text names the file and the problem."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Topics:
+    """Topic and frame names of the topic contract (every one overridable)."""
+
+    color: str = param("/camera/color/image_raw", "colour image, sensor_msgs/Image rgb8|bgr8")
+    depth: str = param("/camera/depth/image_raw", "depth registered to colour, 16UC1 mm or "
+                       "32FC1 m")
+    camera_info: str = param("/camera/color/camera_info", "sensor_msgs/CameraInfo of colour")
+    pose: str = param("/camera/pose", "geometry_msgs/PoseStamped camera-to-world, OpenCV axes")
+    semantic: str = param("/camera/semantic/image_raw", "ground-truth NYU-13 ids, mono16")
+    instance: str = param("/camera/instance/image_raw", "ground-truth instance ids, mono16")
+    embedding: str = param("/neurncd/embedding", "backbone embedding, 32FC<S>")
+    rendered_embedding: str = param("/neurncd/rendered_embedding", "embedding rendered by "
+                                    "the field, 32FC<S>")
+    entropy: str = param("/neurncd/entropy", "rendered entropy, 32FC1")
+    labels: str = param("/neurncd/labels", "discovered labels, mono16 (novel ids >= 100)")
+    labels_color: str = param("/neurncd/labels_color", "labels coloured with the palette, rgb8")
+    classes: str = param("/neurncd/classes", "class table as JSON (std_msgs/String)")
+    tf: str = param("/tf", "dynamic transforms, tf2_msgs/TFMessage")
+    tf_static: str = param("/tf_static", "static transforms, tf2_msgs/TFMessage")
+    camera_frame: str = param("camera", "frame_id of images and camera info")
+    world_frame: str = param("world", "frame_id of the pose (fixed world frame)")
+
+
+@dataclasses.dataclass(frozen=True)
+class SyncConfig:
+    """How :class:`FrameReader` matches messages into frames."""
+
+    max_stamp_skew_ns: int = param(10_000_000, "largest header-stamp difference between "
+                                   "colour and depth / pose / ground truth / tf matched into "
+                                   "one frame (nearest wins)", lo=0, unit="ns")
+    max_pose_gap_ns: int = param(0, "interpolate the pose (pose topic or each /tf edge) between "
+                                 "samples at most this far apart; 0 = exact or nearest only",
+                                 lo=0, unit="ns")
+    with_ground_truth: bool = param(True, "attach semantic / instance images when present")
+    tf_parent: str = param("", "with tf_child: take the pose from /tf as parent->child "
+                           "(e.g. world->camera) instead of the pose topic")
+    tf_child: str = param("", "child frame of the tf pose lookup (the camera optical frame)")
+
+
+# ---------------------------------------------------------------- typestore, messages
+
+_TYPESTORE = None
+
+
+def typestore() -> Any:
+    """The ROS 2 Jazzy typestore (made once)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        from rosbags.typesys import Stores, get_typestore
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+def _t(name: str) -> Any:
+    return typestore().types[name]
+
+
+def header_msg(stamp_ns: int, frame_id: str) -> Any:
+    sec, nsec = ns_to_stamp(stamp_ns)
+    return _t("std_msgs/msg/Header")(stamp=_t("builtin_interfaces/msg/Time")(sec=sec,
+                                                                              nanosec=nsec),
+                                     frame_id=frame_id)
+
+
+def image_msg(stamp_ns: int, frame_id: str, fields: dict[str, Any]) -> Any:
+    """sensor_msgs/Image from :func:`msgconv.image_fields` output."""
+    return _t(IMAGE)(header=header_msg(stamp_ns, frame_id), **fields)
+
+
+def camera_info_msg(stamp_ns: int, frame_id: str, intr: Intrinsics) -> Any:
+    f = camera_info_fields(intr)
+    roi = _t("sensor_msgs/msg/RegionOfInterest")(x_offset=0, y_offset=0, height=0, width=0,
+                                                  do_rectify=False)
+    return _t(CAMERA_INFO)(
+        header=header_msg(stamp_ns, frame_id), height=int(f["height"]),
+        width=int(f["width"]), distortion_model=f["distortion_model"],
+        d=np.asarray(f["d"], np.float64), k=np.asarray(f["k"], np.float64),
+        r=np.asarray(f["r"], np.float64), p=np.asarray(f["p"], np.float64),
+        binning_x=0, binning_y=0, roi=roi)
+
+
+def _quat(q: tuple) -> Any:
+    return _t("geometry_msgs/msg/Quaternion")(x=q[0], y=q[1], z=q[2], w=q[3])
+
+
+def pose_msg(stamp_ns: int, frame_id: str, T: np.ndarray) -> Any:
+    f = matrix_to_pose_fields(T)
+    pos = _t("geometry_msgs/msg/Point")(x=f["position"][0], y=f["position"][1],
+                                        z=f["position"][2])
+    pose = _t("geometry_msgs/msg/Pose")(position=pos, orientation=_quat(f["orientation"]))
+    return _t(POSE_STAMPED)(header=header_msg(stamp_ns, frame_id), pose=pose)
+
+
+def tf_msg(stamp_ns: int, transforms: list[tuple[str, str, np.ndarray]]) -> Any:
+    """tf2_msgs/TFMessage of (parent, child, T_parent_child) transforms."""
+    out = []
+    for parent, child, T in transforms:
+        f = matrix_to_pose_fields(T)
+        tr = _t("geometry_msgs/msg/Vector3")(x=f["position"][0], y=f["position"][1],
+                                             z=f["position"][2])
+        out.append(_t("geometry_msgs/msg/TransformStamped")(
+            header=header_msg(stamp_ns, parent), child_frame_id=child,
+            transform=_t("geometry_msgs/msg/Transform")(translation=tr,
+                                                        rotation=_quat(f["orientation"]))))
+    return _t(TF_MESSAGE)(transforms=out)
+
+
+# ---------------------------------------------------------------- writing
+
+def _storage_plugin(storage: str) -> Any:
+    from rosbags.rosbag2 import StoragePlugin
+    if storage not in STORAGES:
+        raise BagError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
+    return StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+
+
+def _latched_qos() -> list:
+    """Transient-local QoS so replayed /tf_static reaches late subscribers."""
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    inf = QosTime(sec=0, nsec=0)
+    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE,
+                QosDurability.TRANSIENT_LOCAL, inf, inf, QosLiveliness.AUTOMATIC, inf, False)]
+
+
+class _BagWriter:
+    """rosbags Writer with connections made on first use."""
+
+    def __init__(self, path: str | Path, storage: str, overwrite: bool) -> None:
+        from rosbags.rosbag2 import Writer
+        self.path = Path(path)
+        plugin = _storage_plugin(storage)
+        if self.path.exists():
+            if not overwrite:
+                raise BagError(f"{self.path}: exists already; remove it or pass overwrite=True")
+            if not (self.path / "metadata.yaml").is_file():
+                raise BagError(f"{self.path}: exists and is not a bag folder; not overwriting")
+            shutil.rmtree(self.path)
+        self.writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self.conns: dict[str, Any] = {}
+        self.count = 0
+
+    def __enter__(self) -> "_BagWriter":
+        try:
+            self.writer.open()
+        except Exception as err:
+            raise BagError(f"{self.path}: cannot create bag ({err})") from err
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.writer.__exit__(*exc)
+
+    def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
+        conn = self.conns.get(topic)
+        if conn is None:
+            qos = _latched_qos() if topic.endswith("tf_static") else ()
+            conn = self.writer.add_connection(topic, msgtype, typestore=typestore(),
+                                              offered_qos_profiles=qos)
+            self.conns[topic] = conn
+        elif conn.msgtype != msgtype:
+            raise BagError(f"{self.path}: topic {topic} written as {conn.msgtype} and as "
+                           f"{msgtype}")
+        data = msg if isinstance(msg, (bytes, bytearray, memoryview)) else \
+            typestore().serialize_cdr(msg, msgtype)
+        self.writer.write(conn, int(stamp_ns), data)
+        self.count += 1
+
+
+def write_messages(path: str | Path, items: Iterable[tuple[str, str, int, Any]],
+                   storage: str = "mcap", overwrite: bool = False) -> int:
+    """Write (topic, msgtype, stamp_ns, message object or CDR bytes) items; returns count."""
+    with _BagWriter(path, storage, overwrite) as w:
+        for topic, msgtype, stamp_ns, msg in items:
+            w.write(topic, msgtype, stamp_ns, msg)
+    return w.count
+
+
+def frame_messages(fr: Frame, topics: Topics = Topics(), depth_encoding: str = "16UC1",
+                   color_encoding: str = "rgb8", pose_mode: str = "topic"
+                   ) -> list[tuple[str, str, int, Any]]:
+    """The bag items of one Frame (shared by :func:`write_bag` and tests)."""
+    if color_encoding not in ("rgb8", "bgr8"):
+        raise BagError(f"color_encoding must be rgb8 or bgr8, got {color_encoding!r}")
+    if depth_encoding not in ("16UC1", "32FC1"):
+        raise BagError(f"depth_encoding must be 16UC1 or 32FC1, got {depth_encoding!r}")
+    if pose_mode not in ("topic", "tf", "both"):
+        raise BagError(f"pose_mode must be topic, tf or both, got {pose_mode!r}")
+    fr.validate()
+    s, cam = int(fr.stamp_ns), topics.camera_frame
+    rgb = fr.rgb if color_encoding == "rgb8" else fr.rgb[:, :, ::-1]
+    out = [
+        (topics.color, IMAGE, s,
+         image_msg(s, cam, image_fields(rgb, color_encoding, topics.color))),
+        (topics.depth, IMAGE, s,
+         image_msg(s, cam, depth_fields(fr.depth, depth_encoding, topics.depth))),
+        (topics.camera_info, CAMERA_INFO, s, camera_info_msg(s, cam, fr.intrinsics)),
+    ]
+    if pose_mode in ("topic", "both"):
+        out.append((topics.pose, POSE_STAMPED, s, pose_msg(s, topics.world_frame, fr.pose)))
+    if pose_mode in ("tf", "both"):
+        out.append((topics.tf, TF_MESSAGE, s,
+                    tf_msg(s, [(topics.world_frame, cam, fr.pose)])))
+    for topic, img in ((topics.semantic, fr.semantic), (topics.instance, fr.instance)):
+        if img is not None:
+            out.append((topic, IMAGE, s, image_msg(s, cam, image_fields(img, "mono16", topic))))
+    return out
+
+
+def write_bag(path: str | Path, frames: Iterable[Frame], storage: str = "mcap",
+              topics: Topics = Topics(), depth_encoding: str = "16UC1",
+              color_encoding: str = "rgb8", progress: bool = False, pose_mode: str = "topic",
+              overwrite: bool = False) -> int:
+    """Write Frames to a rosbag2 folder; returns the number of frames written.
+
+    Header stamps and bag times are ``frame.stamp_ns``; images use frame_id
+    ``topics.camera_frame``, the pose ``topics.world_frame``. ``pose_mode``
+    writes the pose on the pose topic, on /tf (world -> camera) or both.
+    """
+    it: Iterable[Frame] = frames
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(frames, desc=f"write {Path(path).name}", unit="frame")
+    n = 0
+    with _BagWriter(path, storage, overwrite) as w:
+        for fr in it:
+            try:
+                items = frame_messages(fr, topics, depth_encoding, color_encoding, pose_mode)
+            except ValueError as err:
+                raise BagError(f"{path}: frame {n} (stamp {fr.stamp_ns}): {err}") from None
+            for item in items:
+                w.write(*item)
+            n += 1
+    return n
+
+
+# ---------------------------------------------------------------- reading: low level
+
+def _open(path: Path) -> Any:
+    from rosbags.rosbag2 import Reader
+    if not path.exists():
+        raise BagError(f"{path}: no such bag (file or folder not found)")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except Exception as err:
+        raise BagError(f"{_where(path)}: not a readable rosbag2 bag ({type(err).__name__}: "
+                       f"{err})") from None
+    return reader
+
+
+def _where(path: Path) -> str:
+    """The bag path, with its storage files when it is a folder (to name the bad file)."""
+    if path.is_dir():
+        files = sorted(p.name for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+        if files:
+            return f"{path} ({', '.join(files)})"
+    return str(path)
+
+
+def _messages(path: Path, reader: Any, topics: Iterable[str]
+              ) -> Iterator[tuple[Any, int, bytes]]:
+    """(connection, bag time, raw) of the given topics; read errors become BagError."""
+    wanted = set(topics)
+    conns = [c for c in reader.connections if c.topic in wanted]
+    if not conns:
+        return
+    try:
+        for conn, t, raw in reader.messages(connections=conns):
+            yield conn, t, raw
+    except BagError:
+        raise
+    except Exception as err:
+        raise BagError(f"{_where(path)}: bag is truncated or corrupt ({type(err).__name__}: "
+                       f"{err})") from None
+
+
+def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
+    """Topic -> (message type, message count) of a bag."""
+    path = Path(path)
+    reader = _open(path)
+    try:
+        return {name: (info.msgtype or "", info.msgcount) for name, info in
+                reader.topics.items()}
+    finally:
+        reader.close()
+
+
+def iter_raw(path: str | Path, topics: list[str] | None = None
+             ) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, msgtype, bag time ns, raw CDR bytes) in bag order, for replay."""
+    path = Path(path)
+    reader = _open(path)
+    try:
+        present = {c.topic for c in reader.connections}
+        wanted = present if topics is None else set(topics)
+        if topics is not None and not (wanted & present):
+            raise BagError(f"{path}: none of the topics {sorted(wanted)} is in the bag; it has "
+                           f"{sorted(present)}")
+        for conn, t, raw in _messages(path, reader, wanted):
+            yield conn.topic, conn.msgtype, int(t), bytes(raw)
+    finally:
+        reader.close()
+
+
+def deserialize(raw: bytes, msgtype: str, path: Path, topic: str) -> Any:
+    try:
+        return typestore().deserialize_cdr(raw, msgtype)
+    except Exception as err:
+        raise BagError(f"{path}: {topic}: cannot decode {msgtype} ({type(err).__name__}: "
+                       f"{err})") from None
+
+
+_U32 = {True: struct.Struct("<I"), False: struct.Struct(">I")}
+_STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
+
+
+def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
+    """Header stamp (ns), height and width of a CDR sensor_msgs/Image without decoding data.
+
+    CDR body (after the 4-byte encapsulation header): stamp sec, nanosec,
+    frame_id (uint32 length + bytes), padding to 4, height, width.
+    """
+    little = raw[1] & 1 == 1
+    sec, nsec = _STAMP[little].unpack_from(raw, 4)
+    (n,) = _U32[little].unpack_from(raw, 12)
+    off = (12 + n + 3) & ~3
+    (h,) = _U32[little].unpack_from(raw, 4 + off)
+    (w,) = _U32[little].unpack_from(raw, 4 + off + 4)
+    return sec * 1_000_000_000 + nsec, h, w
+
+
+# ---------------------------------------------------------------- tf buffer
+
+class TfBuffer:
+    """Transforms from /tf (time-stamped) and /tf_static, composed along the tree."""
+
+    def __init__(self) -> None:
+        self.parent: dict[str, str] = {}
+        self.static: dict[str, np.ndarray] = {}                # child -> T_parent_child
+        self.dynamic: dict[str, list[tuple[int, np.ndarray | str]]] = \
+            collections.defaultdict(list)                      # child -> [(stamp, T or error)]
+
+    def add(self, msg: Any, static: bool) -> None:
+        for ts in msg.transforms:
+            parent, child = ts.header.frame_id.lstrip("/"), ts.child_frame_id.lstrip("/")
+            self.parent.setdefault(child, parent)
+            try:
+                T: np.ndarray | str = pose_to_matrix(ts)
+            except MessageError as err:
+                T = str(err)
+            if static:
+                if isinstance(T, np.ndarray):
+                    self.static[child] = T
+            else:
+                self.dynamic[child].append((stamp_to_ns(ts.header.stamp), T))
+
+    def finish(self) -> None:
+        self._times = {}
+        for child, items in self.dynamic.items():
+            items.sort(key=lambda x: x[0])
+            self._times[child] = np.array([s for s, _ in items], dtype=np.int64)
+
+    def _chain(self, frame: str) -> list[str]:
+        out = [frame]
+        while out[-1] in self.parent and len(out) < 64:
+            out.append(self.parent[out[-1]])
+        return out
+
+    def _edge(self, child: str, stamp: int, skew: int, max_gap: int) -> np.ndarray:
+        if child in self.static:
+            return self.static[child]
+        times = self._times.get(child)
+        if times is None or times.size == 0:
+            raise LookupError(f"no transform for frame {child!r}")
+        try:
+            return pose_at(times, [T for _, T in self.dynamic[child]], stamp, skew, max_gap)
+        except LookupError as err:
+            raise LookupError(f"transform {self.parent[child]}->{child}: {err}") from None
+
+    def lookup(self, parent: str, child: str, stamp: int, skew: int, max_gap: int = 0
+               ) -> np.ndarray:
+        """T_parent_child at ``stamp`` (per edge: exact, interpolated or nearest, see pose_at)."""
+        up_c, up_p = self._chain(child), self._chain(parent)
+        common = next((f for f in up_c if f in up_p), None)
+        if common is None:
+            raise LookupError(f"frames {parent!r} and {child!r} are not connected in /tf")
+
+        def to_root(chain: list[str]) -> np.ndarray:
+            T = np.eye(4)
+            for f in chain[: chain.index(common)]:
+                T = self._edge(f, stamp, skew, max_gap) @ T
+            return T
+
+        return invert_pose(to_root(up_p)) @ to_root(up_c)
+
+
+# ---------------------------------------------------------------- FrameReader
+
+@dataclasses.dataclass
+class _Planned:
+    stamp: int
+    keys: dict[str, tuple[str, int]]       # role -> (topic, stamp)
+    intr: Intrinsics
+    pose: np.ndarray
+
+
+class FrameReader:
+    """Frames of a bag, synchronised by header stamp.
+
+    Construction reads the small topics and the image headers (so a bad bag
+    fails here, with :class:`BagError`) and plans the frames; iterating decodes
+    images in one pass. ``dropped`` lists ``(stamp_ns, reason)`` of colour
+    frames that could not be assembled.
+    """
+
+    def __init__(self, path: str | Path, topics: Topics = Topics(),
+                 with_ground_truth: bool = SyncConfig.with_ground_truth,
+                 max_stamp_skew_ns: int = SyncConfig.max_stamp_skew_ns,
+                 tf_parent: str | None = None, tf_child: str | None = None,
+                 max_pose_gap_ns: int = SyncConfig.max_pose_gap_ns) -> None:
+        self.path = Path(path)
+        self.topics = topics
+        self.with_ground_truth = with_ground_truth
+        self.skew = int(max_stamp_skew_ns)
+        self.max_gap = int(max_pose_gap_ns)
+        if self.skew < 0 or self.max_gap < 0:
+            raise BagError(f"max_stamp_skew_ns and max_pose_gap_ns must be >= 0, got "
+                           f"{max_stamp_skew_ns} and {max_pose_gap_ns}")
+        if bool(tf_parent) != bool(tf_child):
+            raise BagError("give both tf_parent and tf_child (or neither)")
+        self.tf_pair = (tf_parent, tf_child) if tf_parent else None
+        self._plan_dropped: list[tuple[int, str]] = []
+        self.dropped: list[tuple[int, str]] = []
+        self.n_color = 0
+        self.missing_gt = 0
+        self._plan: list[_Planned] = []
+        self._make_plan()
+        self.dropped = list(self._plan_dropped)
+
+    @classmethod
+    def from_config(cls, path: str | Path, topics: Topics, sync: SyncConfig) -> "FrameReader":
+        return cls(path, topics, sync.with_ground_truth, sync.max_stamp_skew_ns,
+                   sync.tf_parent or None, sync.tf_child or None, sync.max_pose_gap_ns)
+
+    def __len__(self) -> int:
+        return len(self._plan)
+
+    # -- pass 1: headers and small messages
+    def _make_plan(self) -> None:
+        tp, path = self.topics, self.path
+        reader = _open(path)
+        try:
+            types = {c.topic: c.msgtype for c in reader.connections}
+            for role in ("color", "depth", "camera_info"):
+                if getattr(tp, role) not in types:
+                    raise BagError(f"{path}: no {role} topic {getattr(tp, role)!r}; topics in "
+                                   f"the bag: {sorted(types)}")
+            for topic, want in ((tp.color, IMAGE), (tp.depth, IMAGE),
+                                (tp.camera_info, CAMERA_INFO)):
+                if types[topic] != want:
+                    raise BagError(f"{path}: {topic} has type {types[topic]}, expected {want}")
+            if self.tf_pair is None:
+                if tp.pose not in types:
+                    raise BagError(f"{path}: no pose topic {tp.pose!r} (topics: "
+                                   f"{sorted(types)}); for a /tf pose pass tf_parent and "
+                                   "tf_child")
+                self.pose_source = tp.pose
+            else:
+                if tp.tf not in types and tp.tf_static not in types:
+                    raise BagError(f"{path}: tf pose asked but neither {tp.tf} nor "
+                                   f"{tp.tf_static} is in the bag")
+                self.pose_source = f"tf {self.tf_pair[0]}->{self.tf_pair[1]}"
+            gt_roles = [r for r in ("semantic", "instance")
+                        if self.with_ground_truth and getattr(tp, r) in types]
+            self.gt_roles = gt_roles
+            image_roles = {tp.color: "color", tp.depth: "depth"}
+            image_roles.update({getattr(tp, r): r for r in gt_roles})
+            small = [tp.camera_info] + ([tp.pose] if self.tf_pair is None else
+                                        [t for t in (tp.tf, tp.tf_static) if t in types])
+            heads: dict[str, list[tuple[int, int, int]]] = collections.defaultdict(list)
+            infos: list[tuple[int, Intrinsics | str]] = []
+            poses: list[tuple[int, np.ndarray | str]] = []
+            tfbuf = TfBuffer()
+            for conn, _, raw in _messages(path, reader, list(image_roles) + small):
+                topic = conn.topic
+                if topic in image_roles:
+                    try:
+                        heads[image_roles[topic]].append(image_stamp_and_size(raw))
+                    except (struct.error, IndexError):
+                        raise BagError(f"{path}: {topic}: corrupt image message") from None
+                    continue
+                msg = deserialize(raw, conn.msgtype, path, topic)
+                if topic == tp.camera_info:
+                    try:
+                        infos.append((stamp_to_ns(msg.header.stamp),
+                                      camera_info_to_intrinsics(msg, topic)))
+                    except MessageError as err:
+                        infos.append((stamp_to_ns(msg.header.stamp), str(err)))
+                elif self.tf_pair is None:
+                    try:
+                        poses.append((stamp_to_ns(msg.header.stamp),
+                                      check_pose(pose_to_matrix(msg, topic), f"{topic} pose")))
+                    except ValueError as err:
+                        poses.append((stamp_to_ns(msg.header.stamp), str(err)))
+                else:
+                    tfbuf.add(msg, static=topic == tp.tf_static)
+        finally:
+            reader.close()
+        tfbuf.finish()
+        self._plan_frames(heads, infos, poses, tfbuf)
+
+    def _plan_frames(self, heads: dict, infos: list, poses: list, tfbuf: TfBuffer) -> None:
+        tp, skew = self.topics, self.skew
+        infos.sort(key=lambda x: x[0])
+        poses.sort(key=lambda x: x[0])
+        info_t = np.array([s for s, _ in infos], dtype=np.int64)
+        pose_t = np.array([s for s, _ in poses], dtype=np.int64)
+        pose_vals = [p for _, p in poses]
+        table = {}
+        for role, items in heads.items():
+            first: dict[int, tuple[int, int]] = {}
+            for s, h, w in items:
+                first.setdefault(s, (h, w))
+            table[role] = (np.array(sorted(first), dtype=np.int64), first)
+        colors = heads.get("color", [])
+        self.n_color = len(colors)
+        seen: set[int] = set()
+        for s, h, w in sorted(colors):
+            if s in seen:
+                self._plan_dropped.append((s, "duplicate: another colour image has this stamp"))
+                continue
+            seen.add(s)
+            reason, planned = self._plan_one(s, (h, w), table, infos, info_t, pose_vals,
+                                             pose_t, tfbuf)
+            if reason:
+                self._plan_dropped.append((s, reason))
+            else:
+                self._plan.append(planned)
+
+    def _match(self, table: dict, role: str, s: int) -> tuple[int, tuple[int, int]] | None:
+        if role not in table:
+            return None
+        times, sizes = table[role]
+        if times.size == 0:
+            return None
+        k, d = nearest(times, s)
+        if d > self.skew:
+            return None
+        t = int(times[k])
+        return t, sizes[t]
+
+    def _plan_one(self, s: int, size: tuple[int, int], table: dict, infos: list,
+                  info_t: np.ndarray, pose_vals: list, pose_t: np.ndarray, tfbuf: TfBuffer
+                  ) -> tuple[str, _Planned | None]:
+        tp, ms = self.topics, self.skew / 1e6
+        dep = self._match(table, "depth", s)
+        if dep is None:
+            return f"missing depth: no {tp.depth} within {ms:g} ms", None
+        if dep[1] != size:
+            return (f"size mismatch: colour is {size[1]}x{size[0]} but depth is "
+                    f"{dep[1][1]}x{dep[1][0]}"), None
+        k = int(np.searchsorted(info_t, s + self.skew, side="right")) - 1
+        if k < 0:
+            return f"missing camera_info: no {tp.camera_info} at or before this stamp", None
+        intr = infos[k][1]
+        if isinstance(intr, str):
+            return f"bad camera_info: {intr}", None
+        if intr.shape != size:
+            return (f"size mismatch: camera_info is {intr.width}x{intr.height} but colour is "
+                    f"{size[1]}x{size[0]}"), None
+        source = tp.pose if self.tf_pair is None else "tf {}->{}".format(*self.tf_pair)
+        try:
+            if self.tf_pair is None:
+                pose = pose_at(pose_t, pose_vals, s, self.skew, self.max_gap)
+            else:
+                pose = tfbuf.lookup(self.tf_pair[0], self.tf_pair[1], s, self.skew,
+                                    self.max_gap)
+            pose = check_pose(pose, f"{source} pose")
+        except LookupError as err:
+            text = str(err.args[0]) if err.args else repr(err)
+            kind = "bad pose" if text.startswith("invalid sample") else "missing pose"
+            return f"{kind}: {source}: {text}", None
+        except ValueError as err:
+            return f"bad pose: {err}", None
+        keys = {"color": (tp.color, s), "depth": (tp.depth, dep[0])}
+        for role in self.gt_roles:
+            m = self._match(table, role, s)
+            if m is None or m[1] != size:
+                self.missing_gt += 1
+                continue
+            keys[role] = (getattr(tp, role), m[0])
+        return "", _Planned(s, keys, intr, pose)
+
+    # -- pass 2: decode images in bag order, emit frames in stamp order
+    def __iter__(self) -> Iterator[Frame]:
+        self.dropped = list(self._plan_dropped)
+        need: dict[tuple[str, int], int] = collections.Counter()
+        for p in self._plan:
+            for key in p.keys.values():
+                need[key] += 1
+        if not self._plan:
+            return
+        have: dict[tuple[str, int], Any] = {}
+        head = 0
+        reader = _open(self.path)
+        try:
+            topics = sorted({k[0] for k in need})
+            for conn, _, raw in _messages(self.path, reader, topics):
+                s = image_stamp_and_size(raw)[0]
+                key = (conn.topic, s)
+                if need.get(key, 0) <= 0 or key in have:
+                    continue
+                have[key] = self._decode(raw, conn.topic)
+                while head < len(self._plan) and all(k in have for k in
+                                                     self._plan[head].keys.values()):
+                    fr = self._assemble(self._plan[head], have)
+                    for k in self._plan[head].keys.values():
+                        need[k] -= 1
+                        if need[k] == 0:
+                            del have[k]
+                    head += 1
+                    if fr is not None:
+                        yield fr
+        finally:
+            reader.close()
+        for p in self._plan[head:]:
+            self.dropped.append((p.stamp, "incomplete: images listed but not read back"))
+
+    def _decode(self, raw: bytes, topic: str) -> np.ndarray | str:
+        msg = deserialize(raw, IMAGE, self.path, topic)
+        tp = self.topics
+        try:
+            if topic == tp.color:
+                return rgb_from_image(msg, topic)
+            if topic == tp.depth:
+                return depth_from_image(msg, topic)
+            arr = image_to_array(msg, topic)
+            if arr.ndim != 2:
+                raise MessageError(f"{topic}: label image must have one channel")
+            return arr.astype(np.uint16)
+        except MessageError as err:
+            return str(err)
+
+    def _assemble(self, p: _Planned, have: dict) -> Frame | None:
+        parts = {role: have[key] for role, key in p.keys.items()}
+        for role, v in parts.items():
+            if isinstance(v, str):
+                self.dropped.append((p.stamp, f"bad {role}: {v}"))
+                return None
+        try:
+            return Frame(p.stamp, parts["color"], parts["depth"], p.pose, p.intr,
+                         parts.get("semantic"), parts.get("instance")).validate()
+        except ValueError as err:
+            self.dropped.append((p.stamp, f"invalid frame: {err}"))
+            return None
+
+    def summary(self) -> str:
+        """One paragraph: frames planned, dropped (by reason), pose and ground truth source."""
+        reasons = collections.Counter(r.split(":", 1)[0] for _, r in self.dropped)
+        text = (f"{self.path}: {self.n_color} colour images, {len(self._plan)} frames "
+                f"synchronised (skew <= {self.skew / 1e6:g} ms), {len(self.dropped)} dropped")
+        if reasons:
+            text += " (" + ", ".join(f"{k}: {v}" for k, v in sorted(reasons.items())) + ")"
+        text += f"; pose from {self.pose_source}; ground truth: "
+        text += ", ".join(self.gt_roles) if self.gt_roles else "none"
+        if self.missing_gt:
+            text += f" ({self.missing_gt} frame(s) without matching ground truth)"
+        return text

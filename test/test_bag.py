@@ -1,0 +1,339 @@
+"""ROS 2 bag I/O: exact round trips, /tf poses, synchronisation drops, bad bags."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from neurncd_ros.core.camera import Intrinsics, look_at
+from neurncd_ros.core.data import bag
+from neurncd_ros.core.data.bag import BagError, FrameReader, Topics
+from neurncd_ros.core.frame import Frame
+
+torch.set_num_threads(1)
+
+STAMP0 = 1_700_000_000_123_456_789
+PERIOD = 33_333_333
+
+
+def make_frames(n: int = 4, w: int = 40, h: int = 30, seed: int = 0, gt: bool = True
+                ) -> list[Frame]:
+    """Random frames: mm-quantised depth with holes, distinct poses, NYU-13 / instance GT."""
+    rng = np.random.default_rng(seed)
+    intr = Intrinsics(35.5, 36.25, 19.25, 14.75, w, h)
+    out = []
+    for i in range(n):
+        depth = (rng.integers(300, 6000, (h, w)) / 1000.0).astype(np.float32)
+        depth[rng.random((h, w)) < 0.1] = 0.0
+        eye = rng.uniform(-2, 2, 3) + [0, 0, 1.5]
+        out.append(Frame(
+            STAMP0 + i * PERIOD, rng.integers(0, 256, (h, w, 3), dtype=np.uint8), depth,
+            look_at(eye, rng.uniform(-1, 1, 3)), intr,
+            rng.integers(0, 14, (h, w)).astype(np.uint16) if gt else None,
+            rng.integers(0, 400, (h, w)).astype(np.uint16) if gt else None))
+    return out
+
+
+def assert_same(a: list[Frame], b: list[Frame], gt: bool = True) -> None:
+    assert len(a) == len(b)
+    for fa, fb in zip(a, b):
+        assert fa.stamp_ns == fb.stamp_ns
+        assert fa.intrinsics == fb.intrinsics
+        np.testing.assert_array_equal(fa.rgb, fb.rgb)
+        np.testing.assert_array_equal(fa.depth, fb.depth)
+        assert fb.depth.dtype == np.float32
+        np.testing.assert_allclose(fa.pose, fb.pose, atol=1e-12)
+        if gt:
+            np.testing.assert_array_equal(fa.semantic, fb.semantic)
+            np.testing.assert_array_equal(fa.instance, fb.instance)
+
+
+def bag_file(path: Path) -> Path:
+    return next(p for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("depth_encoding", ["16UC1", "32FC1"])
+def test_round_trip_exact(tmp_path, storage, depth_encoding):
+    frames = make_frames()
+    if depth_encoding == "32FC1":  # any float depth survives 32FC1
+        frames[0].depth = frames[0].depth + np.float32(1e-4)
+    n = bag.write_bag(tmp_path / "b", frames, storage=storage, depth_encoding=depth_encoding)
+    assert n == len(frames)
+    reader = FrameReader(tmp_path / "b")
+    assert len(reader) == n
+    got = list(reader)
+    assert reader.dropped == []
+    assert_same(frames, got)
+    # the storage file alone is a bag too
+    assert_same(frames, list(FrameReader(bag_file(tmp_path / "b"))))
+
+
+def test_bgr8_and_no_ground_truth(tmp_path):
+    frames = make_frames(3, gt=False)
+    bag.write_bag(tmp_path / "b", frames, color_encoding="bgr8")
+    topics = bag.bag_topics(tmp_path / "b")
+    assert Topics().semantic not in topics and topics[Topics().color] == (bag.IMAGE, 3)
+    got = list(FrameReader(tmp_path / "b"))
+    assert_same(frames, got, gt=False)
+    assert all(f.semantic is None for f in got)
+    frames_gt = make_frames(2)
+    bag.write_bag(tmp_path / "c", frames_gt)
+    assert all(f.semantic is None for f in FrameReader(tmp_path / "c", with_ground_truth=False))
+
+
+def test_custom_topic_names(tmp_path):
+    topics = Topics(color="/rgb", depth="/d", camera_info="/info", pose="/p",
+                    semantic="/sem", instance="/inst", camera_frame="cam")
+    frames = make_frames(2)
+    bag.write_bag(tmp_path / "b", frames, topics=topics)
+    assert set(bag.bag_topics(tmp_path / "b")) == {"/rgb", "/d", "/info", "/p", "/sem",
+                                                   "/inst"}
+    assert_same(frames, list(FrameReader(tmp_path / "b", topics=topics)))
+    with pytest.raises(BagError, match="no color topic '/camera/color/image_raw'"):
+        FrameReader(tmp_path / "b")
+
+
+def test_tf_instead_of_pose_topic(tmp_path):
+    frames = make_frames(4)
+    bag.write_bag(tmp_path / "tf", frames, pose_mode="tf")
+    assert Topics().pose not in bag.bag_topics(tmp_path / "tf")
+    with pytest.raises(BagError, match="tf_parent"):
+        FrameReader(tmp_path / "tf")
+    got = list(FrameReader(tmp_path / "tf", tf_parent="world", tf_child="camera"))
+    assert_same(frames, got)
+
+
+def test_tf_chain_static_and_dynamic(tmp_path):
+    """world -> odom on /tf_static, odom -> base and base -> camera on /tf, camera pose composed."""
+    frames = make_frames(3)
+    tp = Topics()
+    T_wo = look_at([1.0, 2.0, 0.5], [3.0, 2.5, 0.0])
+    T_bc = look_at([0.1, 0.0, 0.2], [1.0, 0.1, 0.1])
+    T_ow = np.linalg.inv(T_wo)
+    items = [(tp.tf_static, bag.TF_MESSAGE, STAMP0 - 10, bag.tf_msg(STAMP0 - 10,
+                                                                    [("world", "odom", T_wo)]))]
+    for f in frames:
+        T_ob = T_ow @ f.pose @ np.linalg.inv(T_bc)
+        for topic, typ, s, msg in bag.frame_messages(f, tp, pose_mode="tf"):
+            if topic == tp.tf:  # replace the direct transform by the chain
+                msg = bag.tf_msg(s + 2_000_000, [("odom", "base", T_ob)])
+                items.append((topic, typ, s, msg))
+                msg = bag.tf_msg(s, [("base", "camera", T_bc)])
+            items.append((topic, typ, s, msg))
+    bag.write_messages(tmp_path / "chain", items)
+    reader = FrameReader(tmp_path / "chain", tf_parent="world", tf_child="camera")
+    got = list(reader)
+    assert len(got) == 3 and reader.dropped == []
+    for f, g in zip(frames, got):
+        np.testing.assert_allclose(g.pose, f.pose, atol=1e-9)
+    # a tighter skew than the 2 ms offset of odom->base loses every frame, with the reason
+    strict = FrameReader(tmp_path / "chain", tf_parent="world", tf_child="camera",
+                         max_stamp_skew_ns=1_000_000)
+    assert list(strict) == [] and len(strict.dropped) == 3
+    assert all("odom->base" in r for _, r in strict.dropped)
+    # unconnected frames are reported, not crashed on
+    lost = FrameReader(tmp_path / "chain", tf_parent="map", tf_child="camera")
+    assert len(lost) == 0 and "not connected" in lost.dropped[0][1]
+
+
+def _items_without(frames, tp, drop):
+    """All bag items of ``frames`` except those for which drop(index, topic) is true."""
+    out = []
+    for i, f in enumerate(frames):
+        out += [it for it in bag.frame_messages(f, tp) if not drop(i, it[0])]
+    return out
+
+
+def test_missing_pose_is_reported(tmp_path):
+    frames, tp = make_frames(4), Topics()
+    bag.write_messages(tmp_path / "b", _items_without(frames, tp,
+                                                      lambda i, t: i == 2 and t == tp.pose))
+    reader = FrameReader(tmp_path / "b")
+    got = list(reader)
+    assert [f.stamp_ns for f in got] == [frames[i].stamp_ns for i in (0, 1, 3)]
+    assert len(reader.dropped) == 1
+    stamp, reason = reader.dropped[0]
+    assert stamp == frames[2].stamp_ns and reason.startswith("missing pose")
+    assert "1 dropped" in reader.summary() and "missing pose: 1" in reader.summary()
+
+
+def test_missing_depth_and_camera_info_latest_before(tmp_path):
+    frames, tp = make_frames(4), Topics()
+    items = _items_without(frames, tp, lambda i, t: (i == 1 and t == tp.depth)
+                           or (i > 0 and t == tp.camera_info))
+    bag.write_messages(tmp_path / "b", items)
+    reader = FrameReader(tmp_path / "b")
+    got = list(reader)
+    assert [f.stamp_ns for f in got] == [frames[i].stamp_ns for i in (0, 2, 3)]
+    assert all(f.intrinsics == frames[0].intrinsics for f in got)  # info of frame 0 reused
+    assert reader.dropped[0][0] == frames[1].stamp_ns
+    assert reader.dropped[0][1].startswith("missing depth")
+
+
+def test_nearest_stamp_within_skew(tmp_path):
+    frames, tp = make_frames(3), Topics()
+    items = []
+    for i, f in enumerate(frames):
+        shift = (3_000_000 if i < 2 else 30_000_000)  # 3 ms skew matches, 30 ms does not
+        for topic, typ, s, msg in bag.frame_messages(f, tp):
+            if topic == tp.depth:
+                g = Frame(s + shift, f.rgb, f.depth, f.pose, f.intrinsics)
+                msg = bag.frame_messages(g, tp)[1][3]
+                s += shift
+            items.append((topic, typ, s, msg))
+    bag.write_messages(tmp_path / "b", items)
+    reader = FrameReader(tmp_path / "b", max_stamp_skew_ns=10_000_000)
+    got = list(reader)
+    assert_same(frames[:2], got)
+    assert reader.dropped == [(frames[2].stamp_ns, reader.dropped[0][1])]
+    assert "missing depth" in reader.dropped[0][1]
+    exact = FrameReader(tmp_path / "b", max_stamp_skew_ns=0)
+    assert len(exact) == 0 and len(exact.dropped) == 3
+
+
+def test_size_mismatch_and_non_finite_pose_reported(tmp_path):
+    frames, tp = make_frames(3), Topics()
+    small = make_frames(1, w=20, h=10, seed=5)[0]
+    items = []
+    for i, f in enumerate(frames):
+        for topic, typ, s, msg in bag.frame_messages(f, tp):
+            if i == 0 and topic == tp.depth:
+                g = Frame(s, small.rgb, small.depth, small.pose, small.intrinsics)
+                msg = bag.frame_messages(g, tp)[1][3]
+            if i == 2 and topic == tp.pose:
+                msg.pose.position.x = float("nan")
+            items.append((topic, typ, s, msg))
+    bag.write_messages(tmp_path / "b", items)
+    reader = FrameReader(tmp_path / "b")
+    got = list(reader)
+    assert [f.stamp_ns for f in got] == [frames[1].stamp_ns]
+    reasons = dict(reader.dropped)
+    assert "size mismatch" in reasons[frames[0].stamp_ns]
+    assert "40x30" in reasons[frames[0].stamp_ns] and "20x10" in reasons[frames[0].stamp_ns]
+    assert "non-finite" in reasons[frames[2].stamp_ns]
+
+
+def test_iter_raw_gives_cdr_in_bag_order(tmp_path):
+    frames, tp = make_frames(2), Topics()
+    bag.write_bag(tmp_path / "b", frames)
+    raw = list(bag.iter_raw(tmp_path / "b"))
+    assert len(raw) == 2 * 6
+    assert [r[2] for r in raw] == sorted(r[2] for r in raw)
+    colour = [r for r in raw if r[0] == tp.color]
+    assert [r[1] for r in colour] == [bag.IMAGE] * 2
+    msg = bag.typestore().deserialize_cdr(colour[1][3], bag.IMAGE)
+    assert (msg.height, msg.width, msg.encoding) == (30, 40, "rgb8")
+    np.testing.assert_array_equal(msg.data.reshape(30, 40, 3), frames[1].rgb)
+    assert bag.image_stamp_and_size(colour[1][3]) == (frames[1].stamp_ns, 30, 40)
+    only = list(bag.iter_raw(tmp_path / "b", [tp.pose, "/absent"]))
+    assert [r[0] for r in only] == [tp.pose] * 2
+    with pytest.raises(BagError, match="none of the topics"):
+        list(bag.iter_raw(tmp_path / "b", ["/absent"]))
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_truncated_bag_raises_naming_file(tmp_path, storage):
+    bag.write_bag(tmp_path / "b", make_frames(6), storage=storage)
+    f = bag_file(tmp_path / "b")
+    os.truncate(f, f.stat().st_size * 2 // 3)
+    with pytest.raises(BagError, match=str(tmp_path / "b")) as info:
+        FrameReader(tmp_path / "b")
+    assert f.name in str(info.value)
+    with pytest.raises(BagError, match=str(f)):
+        FrameReader(f)
+    with pytest.raises(BagError, match="bag"):
+        list(bag.iter_raw(tmp_path / "b"))
+
+
+def test_bogus_and_missing_bags(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"not a bag " * 50)
+    with pytest.raises(BagError, match="junk.mcap"):
+        FrameReader(junk)
+    text = tmp_path / "notes.txt"
+    text.write_text("hello")
+    with pytest.raises(BagError, match="notes.txt"):
+        FrameReader(text)
+    with pytest.raises(BagError, match="no such bag"):
+        FrameReader(tmp_path / "absent")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError, match="empty"):
+        FrameReader(tmp_path / "empty")
+    assert issubclass(BagError, ValueError)
+
+
+def test_writer_rejects_bad_arguments(tmp_path):
+    frames = make_frames(1)
+    with pytest.raises(BagError, match="storage"):
+        bag.write_bag(tmp_path / "a", frames, storage="rosbag1")
+    with pytest.raises(BagError, match="depth_encoding"):
+        bag.write_bag(tmp_path / "b", frames, depth_encoding="mono8")
+    bag.write_bag(tmp_path / "c", frames)
+    with pytest.raises(BagError, match="exists"):
+        bag.write_bag(tmp_path / "c", frames)
+    assert bag.write_bag(tmp_path / "c", make_frames(2), overwrite=True) == 2
+    far = make_frames(1)[0]
+    far.depth[0, 0] = 70.0  # beyond 16UC1 range
+    with pytest.raises(BagError, match="65.535"):
+        bag.write_bag(tmp_path / "d", [far])
+    with pytest.raises(BagError, match="tf_parent"):
+        FrameReader(tmp_path / "c", tf_parent="world")
+
+
+@pytest.mark.slow
+def test_write_300_frames_is_fast(tmp_path):
+    frames = make_frames(300, w=320, h=240)
+    for storage in ("mcap", "sqlite3"):
+        t0 = time.perf_counter()
+        bag.write_bag(tmp_path / storage, frames, storage=storage)
+        dt = time.perf_counter() - t0
+        assert dt < 15.0, f"{storage}: writing 300 frames took {dt:.1f} s"
+        assert len(FrameReader(tmp_path / storage)) == 300
+    shutil.rmtree(tmp_path)
+
+
+def test_missing_pose_interpolated_when_allowed(tmp_path):
+    from neurncd_ros.core.camera import pose_distance
+    frames, tp = make_frames(4), Topics()
+    bag.write_messages(tmp_path / "b", _items_without(frames, tp,
+                                                      lambda i, t: i == 2 and t == tp.pose))
+    reader = FrameReader(tmp_path / "b", max_pose_gap_ns=2 * PERIOD + 1)
+    got = list(reader)
+    assert reader.dropped == [] and len(got) == 4
+    assert_same([frames[i] for i in (0, 1, 3)], [got[i] for i in (0, 1, 3)])
+    p1, p3, mid = frames[1].pose, frames[3].pose, got[2].pose
+    np.testing.assert_allclose(mid[:3, 3], (p1[:3, 3] + p3[:3, 3]) / 2, atol=1e-9)
+    _, ang = pose_distance(p1, p3)
+    assert pose_distance(p1, mid)[1] == pytest.approx(ang / 2, abs=1e-6)
+    assert pose_distance(mid, p3)[1] == pytest.approx(ang / 2, abs=1e-6)
+    # a gap limit below the 2-frame spacing keeps the drop
+    assert len(FrameReader(tmp_path / "b", max_pose_gap_ns=PERIOD).dropped) == 1
+
+
+def test_unsupported_encodings_are_dropped_with_reason(tmp_path):
+    from neurncd_ros.msgconv import image_fields
+    frames, tp = make_frames(3), Topics()
+    items = []
+    for i, f in enumerate(frames):
+        for topic, typ, s, msg in bag.frame_messages(f, tp):
+            if i == 0 and topic == tp.depth:  # 8-bit depth is not a depth encoding
+                msg = bag.image_msg(s, "camera", image_fields(f.rgb[:, :, 0], "mono8"))
+            if i == 1 and topic == tp.color:  # grey colour image
+                msg = bag.image_msg(s, "camera", image_fields(f.rgb[:, :, 0], "mono8"))
+            items.append((topic, typ, s, msg))
+    bag.write_messages(tmp_path / "b", items, storage="sqlite3")
+    reader = FrameReader(tmp_path / "b")
+    got = list(reader)
+    assert_same(frames[2:], got)
+    reasons = dict(reader.dropped)
+    assert reasons[frames[0].stamp_ns].startswith("bad depth") and "mono8" in \
+        reasons[frames[0].stamp_ns]
+    assert reasons[frames[1].stamp_ns].startswith("bad color")
+    assert "bad depth: 1" in reader.summary() and "bad color: 1" in reader.summary()
