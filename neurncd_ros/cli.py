@@ -98,11 +98,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 def cmd_convert(args: argparse.Namespace) -> int:
     from .core.data import formats
+    from .core.params import to_dict
 
+    cfg = load_config(args)
     opts = _overrides(args.opt)
+    folder_opts = {k: v for k, v in to_dict(cfg.convert).items()
+                   if v != getattr(formats.FolderConfig(), k)}
     t0 = time.perf_counter()
     n = formats.convert(args.src, args.out, kind=args.kind, storage=args.storage,
-                        tf_parent=args.tf_parent, tf_child=args.tf_child, **opts)
+                        tf_parent=args.tf_parent, tf_child=args.tf_child, progress=True,
+                        **{**folder_opts, **opts})
     print(f"converted {n} frames from {args.src} to {args.out} in "
           f"{time.perf_counter() - t0:.1f} s")
     return 0
@@ -112,7 +117,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .core.data.bag import FrameReader
 
     cfg = load_config(args)
-    reader = FrameReader(args.bag, topics=cfg.topics)
+    reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync)
     n, first = 0, None
     for frame in reader:
         first = first or frame
@@ -211,7 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame")
     p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame")
     p.add_argument("--opt", action="append", metavar="KEY=VALUE",
-                   help="reader option, e.g. --opt depth_scale=5000 --opt fx=525")
+                   help="reader option (a convert.* parameter), e.g. --opt depth_scale=5000 "
+                   "--opt 'intrinsics=[525, 525, 319.5, 239.5]'")
+    _add_config_args(p)
     p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("info", help="summarise a bag: synchronised frames and drops")

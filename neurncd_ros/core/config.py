@@ -104,6 +104,8 @@ class RunConfig:
 # module stays cheap to import.
 SECTIONS: dict[str, tuple[str, str]] = {
     "topics": ("neurncd_ros.core.data.bag", "Topics"),
+    "sync": ("neurncd_ros.core.data.bag", "SyncConfig"),
+    "convert": ("neurncd_ros.core.data.formats", "FolderConfig"),
     "synth": ("neurncd_ros.core.data.synth", "SynthConfig"),
     "backbone": ("neurncd_ros.core.backbone.backbone", "BackboneConfig"),
     "mapper": ("neurncd_ros.core.field.mapper", "MapperConfig"),

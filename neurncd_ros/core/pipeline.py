@@ -136,7 +136,7 @@ def run_bag(bag: str | Path, cfg: Config, out_dir: str | Path) -> dict[str, Any]
     """``neurncd run --bag``: read synchronised frames from a bag and run on them."""
     from .data.bag import FrameReader
 
-    reader = FrameReader(bag, topics=cfg.topics)
+    reader = FrameReader.from_config(bag, cfg.topics, cfg.sync)
     result = run_frames(reader, cfg, out_dir)
     result["bag"] = str(bag)
     result["dropped"] = len(reader.dropped)

@@ -92,12 +92,18 @@ def declare_config(node: Any) -> config_mod.Config:
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown parameter; see `neurncd params` for the "
                           "list of parameters")
+    from rclpy.parameter import Parameter
+
     values = {}
     for key, default in defaults.items():
         if node.has_parameter(key):
-            values[key] = node.get_parameter(key).value
+            value = node.get_parameter(key).value
+        elif isinstance(default, list) and not default:
+            # An empty list has no element type ROS could infer: declare it typed.
+            value = node.declare_parameter(key, Parameter.Type.DOUBLE_ARRAY).value
         else:
-            values[key] = node.declare_parameter(key, _ros_value(default)).value
+            value = node.declare_parameter(key, _ros_value(default)).value
+        values[key] = default if value is None else value
     return config_mod.from_flat(values)
 
 
