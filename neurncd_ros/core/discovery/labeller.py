@@ -1,0 +1,306 @@
+"""Segment memory, Markov re-clustering, known/novel naming and stable novel ids.
+
+Per processed frame (:meth:`Discoverer.process`):
+
+1. the depth is cut into convex segments (:mod:`geoseg`), each segment gets a
+   pooled descriptor (:mod:`modulation`) and pixel statistics;
+2. the segments enter a bounded *segment memory*: the segments of the last
+   ``recent_frames`` frames are always kept; beyond ``memory_size`` segments,
+   older ones are dropped uniformly at random (seeded, so runs repeat), which
+   keeps a thinning sample of the whole history;
+3. every ``recluster_period`` frames the memory is re-clustered with Markov
+   clustering (:mod:`mcl`); in between, the new segments join the cluster with
+   the most similar (cosine) pixel-weighted mean descriptor;
+4. each cluster is named from its members' pooled statistics: if the members'
+   pixel-weighted mean entropy is below ``entropy_threshold`` * log(S) and the
+   majority embedding-argmax channel holds at least ``majority_share`` of their
+   pixels, it is that channel's known NYU-13 class (via ``channel_to_id``);
+   otherwise, if it has at least ``min_cluster_segments`` segments and
+   ``min_cluster_pixels`` pixels, it is a novel class; otherwise it is left
+   undecided and its pixels fall back to the per-pixel embedding argmax;
+5. novel ids start at ``classes.NOVEL_ID_START`` and stay stable: after a
+   re-clustering, novel clusters are matched to the previous novel ids by the
+   overlap of their member segments (Hungarian on overlap counts, accepted if
+   the overlap is at least ``match_overlap`` of the smaller of the two member
+   sets still in memory); unmatched clusters get fresh ids; ids are never
+   reused. Cluster numbering therefore never influences ids.
+
+Every pixel of a processed frame gets a label: segment pixels get their
+cluster's label; pixels without a segment (no depth, edges left unassigned,
+undecided clusters) get the known class of the per-pixel embedding argmax.
+Label 0 is produced only at pixels outside every decided segment whose
+embedding is not finite.
+
+:meth:`Discoverer.classes` reports, for every id present in the last labelled
+frame plus every currently live novel id, its name, kind and pixel count in the
+last labelled frame. Not thread-safe (the node serialises calls).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from ..camera import Intrinsics
+from ..classes import NOVEL_ID_START, NUM_CLASSES, class_name
+from ..params import param
+from .geoseg import GeoSegConfig, segment_depth
+from .mcl import MCLConfig, markov_cluster
+from .modulation import ModulationConfig, descriptors_from_stats, segment_stats
+
+UNDECIDED = -1
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveryConfig:
+    """Segment memory, re-clustering schedule and known/novel decision thresholds."""
+
+    memory_size: int = param(3000, "segments kept in the segment memory", lo=10, hi=100000)
+    recent_frames: int = param(10, "the segments of this many latest frames are never dropped",
+                               lo=1, hi=10000)
+    recluster_period: int = param(1, "re-cluster the memory every this many frames", lo=1,
+                                  hi=10000)
+    entropy_threshold: float = param(0.6, "known if mean entropy / log(S) is below this",
+                                     lo=0.0, hi=1.0)
+    majority_share: float = param(0.5, "known if the majority argmax channel holds this share "
+                                  "of the cluster's pixels", lo=0.0, hi=1.0)
+    min_cluster_segments: int = param(2, "a novel cluster needs at least this many segments",
+                                      lo=1, hi=10000)
+    min_cluster_pixels: int = param(500, "a novel cluster needs at least this many pixels",
+                                    lo=0, hi=10**9, unit="px")
+    match_overlap: float = param(0.3, "share of shared member segments to keep a novel id",
+                                 lo=0.0, hi=1.0)
+    seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
+
+
+@dataclasses.dataclass
+class _Memory:
+    """Column store of the remembered segments."""
+
+    uid: np.ndarray           # (N,) int64 unique segment ids
+    frame: np.ndarray         # (N,) int64 frame index
+    desc: np.ndarray          # (N, D) float32
+    pixels: np.ndarray        # (N,) int64
+    ent_sum: np.ndarray       # (N,) float64 entropy summed over pixels
+    hist: np.ndarray          # (N, S) int64 argmax histogram
+    cluster: np.ndarray       # (N,) int64 label of the segment's cluster (id or UNDECIDED)
+
+    @classmethod
+    def empty(cls, D: int, S: int) -> "_Memory":
+        return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, D), np.float32),
+                   np.zeros(0, np.int64), np.zeros(0), np.zeros((0, S), np.int64),
+                   np.zeros(0, np.int64))
+
+    def take(self, idx: np.ndarray) -> "_Memory":
+        return _Memory(*(getattr(self, f.name)[idx] for f in dataclasses.fields(self)))
+
+    def extend(self, other: "_Memory") -> "_Memory":
+        return _Memory(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)])
+                         for f in dataclasses.fields(self)))
+
+    def __len__(self) -> int:
+        return int(self.uid.size)
+
+
+class Discoverer:
+    """Online novel class discovery over a stream of (depth, embedding, entropy) frames."""
+
+    def __init__(self, cfg: DiscoveryConfig = DiscoveryConfig(),
+                 channel_to_id: np.ndarray | None = None, mcl_cfg: MCLConfig = MCLConfig(),
+                 seg_cfg: GeoSegConfig = GeoSegConfig(),
+                 mod_cfg: ModulationConfig = ModulationConfig()) -> None:
+        if channel_to_id is None:
+            from ..classes import CHANNEL_TO_ID
+            channel_to_id = CHANNEL_TO_ID
+        c2i = np.asarray(channel_to_id)
+        if c2i.ndim != 1 or c2i.size < 2:
+            raise ValueError(f"channel_to_id must be a 1-D array of >= 2 ids, got {c2i.shape}")
+        if c2i.min() < 1 or c2i.max() > NUM_CLASSES:
+            raise ValueError(f"channel_to_id must hold NYU-13 ids 1..{NUM_CLASSES}, got "
+                             f"{c2i.tolist()}")
+        self.cfg, self.mcl_cfg, self.seg_cfg, self.mod_cfg = cfg, mcl_cfg, seg_cfg, mod_cfg
+        self.channel_to_id = c2i.astype(np.uint16)
+        self.S = int(c2i.size)
+        self._rng = np.random.default_rng(cfg.seed)
+        self.reset()
+
+    # ------------------------------------------------------------ state
+
+    def reset(self) -> None:
+        """Forget every segment and novel id (ids restart at NOVEL_ID_START)."""
+        self._mem: _Memory | None = None
+        self._frames = 0
+        self._next_uid = 0
+        self._next_novel = NOVEL_ID_START
+        self._novel_members: dict[int, np.ndarray] = {}  # novel id -> member uids
+        self._last_counts: dict[int, int] = {}
+        self.last_segments: np.ndarray | None = None
+        self.last_stamp_ns: int | None = None
+
+    @property
+    def memory_len(self) -> int:
+        return 0 if self._mem is None else len(self._mem)
+
+    # ------------------------------------------------------------ main entry
+
+    def process(self, depth: np.ndarray, intrinsics: Intrinsics, embedding: np.ndarray,
+                entropy: np.ndarray, stamp_ns: int = 0) -> np.ndarray:
+        """Label one frame: (H, W) uint16 with known ids 1..13 and novel ids >= 100."""
+        embedding = np.asarray(embedding)
+        if embedding.ndim != 3 or embedding.shape[2] != self.S:
+            raise ValueError(f"embedding must be (H, W, {self.S}) to match channel_to_id, got "
+                             f"{embedding.shape}")
+        if embedding.shape[:2] != np.asarray(depth).shape:
+            raise ValueError(f"embedding is {embedding.shape[:2]} but depth is "
+                             f"{np.asarray(depth).shape}")
+        segments = segment_depth(depth, intrinsics, self.seg_cfg)
+        labels = self.process_segments(segments, embedding, entropy)
+        self.last_stamp_ns = int(stamp_ns)
+        return labels
+
+    def process_segments(self, segments: np.ndarray, embedding: np.ndarray,
+                         entropy: np.ndarray) -> np.ndarray:
+        """As :meth:`process` but with a given segmentation (ids 0..n-1, -1 = none)."""
+        stats, mean_logit = segment_stats(segments, embedding, entropy)
+        desc = descriptors_from_stats(stats, mean_logit, self.mod_cfg)
+        present = stats.pixels > 0
+        n = int(stats.pixels.size)
+        new = _Memory(uid=np.arange(self._next_uid, self._next_uid + n, dtype=np.int64),
+                      frame=np.full(n, self._frames, np.int64), desc=desc,
+                      pixels=stats.pixels, ent_sum=stats.mean_entropy * stats.pixels,
+                      hist=stats.argmax_hist, cluster=np.full(n, UNDECIDED, np.int64))
+        self._next_uid += n
+        new = new.take(np.flatnonzero(present))
+        if self._mem is None:
+            self._mem = _Memory.empty(desc.shape[1], self.S)
+        if self._frames % self.cfg.recluster_period == 0:
+            self._mem = self._thin(self._mem.extend(new))
+            self._recluster()
+        else:
+            new.cluster = self._nearest_cluster(new)
+            self._mem = self._thin(self._mem.extend(new))
+        self._frames += 1
+        # Labels of this frame's segments, by uid.
+        seg_label = np.full(n, UNDECIDED, np.int64)
+        mine = self._mem.frame == self._frames - 1
+        seg_label[self._mem.uid[mine] - (self._next_uid - n)] = self._mem.cluster[mine]
+        labels = self._paint(segments, seg_label, embedding)
+        self.last_segments = segments
+        ids, counts = np.unique(labels, return_counts=True)
+        self._last_counts = dict(zip(ids.tolist(), counts.tolist()))
+        return labels
+
+    # ------------------------------------------------------------ memory
+
+    def _thin(self, mem: _Memory) -> _Memory:
+        """Drop random old segments beyond ``memory_size`` (recent frames are kept)."""
+        excess = len(mem) - self.cfg.memory_size
+        if excess <= 0:
+            return mem
+        old = np.flatnonzero(mem.frame < self._frames - self.cfg.recent_frames + 1)
+        if old.size == 0:
+            return mem
+        drop = self._rng.choice(old, size=min(excess, old.size), replace=False)
+        keep = np.ones(len(mem), bool)
+        keep[drop] = False
+        return mem.take(np.flatnonzero(keep))
+
+    # ------------------------------------------------------------ clustering
+
+    def _recluster(self) -> None:
+        mem = self._mem
+        if len(mem) == 0:
+            return
+        clusters = markov_cluster(mem.desc, self.mcl_cfg) if len(mem) > 1 else np.zeros(1, int)
+        mem.cluster = self.name_clusters(clusters)
+
+    def name_clusters(self, clusters: np.ndarray) -> np.ndarray:
+        """Per memory segment label (known id, stable novel id or UNDECIDED) from cluster ids.
+
+        Updates the novel-id bookkeeping; cluster numbering does not matter.
+        """
+        mem = self._mem
+        cfg = self.cfg
+        clusters = np.asarray(clusters, np.int64)
+        m = int(clusters.max()) + 1 if clusters.size else 0
+        pix = np.bincount(clusters, weights=mem.pixels, minlength=m)
+        ent = np.bincount(clusters, weights=mem.ent_sum, minlength=m) / np.maximum(pix, 1)
+        hist = np.zeros((m, self.S))
+        np.add.at(hist, clusters, mem.hist)
+        share = hist.max(axis=1) / np.maximum(hist.sum(axis=1), 1)
+        nseg = np.bincount(clusters, minlength=m)
+        known = (ent <= cfg.entropy_threshold * np.log(self.S)) & (share >= cfg.majority_share)
+        novel = ~known & (nseg >= cfg.min_cluster_segments) & (pix >= cfg.min_cluster_pixels)
+        cluster_label = np.full(m, UNDECIDED, np.int64)
+        cluster_label[known] = self.channel_to_id[hist[known].argmax(axis=1)]
+        novel_idx = np.flatnonzero(novel)
+        ids = self._match_novel([mem.uid[clusters == c] for c in novel_idx])
+        cluster_label[novel_idx] = ids
+        return cluster_label[clusters]
+
+    def _match_novel(self, members: list[np.ndarray]) -> np.ndarray:
+        """Stable ids for novel clusters given their member uids (Hungarian on overlap)."""
+        prev_ids = np.array(sorted(self._novel_members), np.int64)
+        out = np.full(len(members), -1, np.int64)
+        if len(members) and prev_ids.size:
+            prev_uid = np.concatenate([self._novel_members[i] for i in prev_ids.tolist()])
+            prev_idx = np.repeat(np.arange(prev_ids.size),
+                                 [self._novel_members[i].size for i in prev_ids.tolist()])
+            live = np.isin(prev_uid, self._mem.uid)
+            prev_uid, prev_idx = prev_uid[live], prev_idx[live]
+            prev_size = np.bincount(prev_idx, minlength=prev_ids.size)
+            order = np.argsort(prev_uid)
+            prev_uid, prev_idx = prev_uid[order], prev_idx[order]
+            new_uid = np.concatenate(members)
+            new_idx = np.repeat(np.arange(len(members)), [m.size for m in members])
+            pos = np.clip(np.searchsorted(prev_uid, new_uid), 0, max(prev_uid.size - 1, 0))
+            hit = (prev_uid.size > 0) & (prev_uid[pos] == new_uid) if prev_uid.size else \
+                np.zeros(new_uid.size, bool)
+            overlap = np.zeros((len(members), prev_ids.size))
+            np.add.at(overlap, (new_idx[hit], prev_idx[pos[hit]]), 1)
+            r, c = linear_sum_assignment(-overlap)
+            for i, j in zip(r, c):
+                smaller = min(members[i].size, prev_size[j])
+                if overlap[i, j] > 0 and overlap[i, j] >= self.cfg.match_overlap * smaller:
+                    out[i] = prev_ids[j]
+        # Fresh ids in a deterministic order: by smallest member uid.
+        firsts = [int(m.min()) if m.size else -1 for m in members]
+        for i in np.argsort(firsts, kind="stable").tolist():
+            if out[i] < 0:
+                out[i] = self._next_novel
+                self._next_novel += 1
+        self._novel_members = {int(out[i]): members[i] for i in range(len(members))}
+        return out
+
+    def _nearest_cluster(self, new: _Memory) -> np.ndarray:
+        """Labels for segments arriving between re-clusterings: most similar cluster mean."""
+        mem = self._mem
+        if len(mem) == 0 or len(new) == 0:
+            return np.full(len(new), UNDECIDED, np.int64)
+        labs, inv = np.unique(mem.cluster, return_inverse=True)
+        cent = np.zeros((labs.size, mem.desc.shape[1]))
+        np.add.at(cent, inv, mem.desc * mem.pixels[:, None])
+        cent /= np.maximum(np.linalg.norm(cent, axis=1, keepdims=True), 1e-12)
+        d = new.desc / np.maximum(np.linalg.norm(new.desc, axis=1, keepdims=True), 1e-12)
+        return labs[np.argmax(d @ cent.T, axis=1)]
+
+    # ------------------------------------------------------------ output
+
+    def _paint(self, segments: np.ndarray, seg_label: np.ndarray, embedding: np.ndarray
+               ) -> np.ndarray:
+        """Label image: segment labels, per-pixel argmax known class elsewhere."""
+        finite = np.all(np.isfinite(embedding), axis=2)
+        fallback = np.where(finite, self.channel_to_id[np.argmax(
+            np.nan_to_num(embedding, nan=-np.inf), axis=2)], 0).astype(np.uint16)
+        lab = np.where(segments >= 0, seg_label[np.maximum(segments, 0)] if seg_label.size
+                       else UNDECIDED, UNDECIDED)
+        return np.where(lab > 0, lab, fallback).astype(np.uint16)
+
+    def classes(self) -> dict[int, dict]:
+        """{id: {"name", "kind": "known"|"novel", "pixels": count in the last labelled frame}}."""
+        ids = set(self._last_counts) | set(self._novel_members)
+        ids.discard(0)
+        return {i: {"name": class_name(i), "kind": "novel" if i >= NOVEL_ID_START else "known",
+                    "pixels": int(self._last_counts.get(i, 0))} for i in sorted(ids)}

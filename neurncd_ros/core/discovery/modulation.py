@@ -1,0 +1,186 @@
+"""Feature modulation: one descriptor per geometric segment.
+
+The paper's Algorithm 1 writes each segment's features into its own pixels of
+a zeroed H x W map and flattens that map into the segment's vector. Taken
+literally, two disjoint segments then have disjoint supports and cosine
+similarity exactly 0, so Markov clustering could never merge segments. What it
+intends, and what is implemented here, is a *pooled* descriptor per segment:
+
+    H_s = [ pool(embedding over s) , w * pool(entropy over s) ]
+
+- embedding part: "softmax" = mean of softmax(embedding) (a class-probability
+  histogram, non-negative, so cosine similarities are in [0, 1]); "logits" =
+  mean of the raw logits, L2-normalised (keeps the backbone's confidence
+  structure but may be negative);
+- entropy part: mean and standard deviation of the per-pixel entropy divided by
+  log(S) (so in [0, 1]) and scaled by ``entropy_weight``; novel objects are
+  typically high-entropy regions, which is what the entropy modulates.
+
+``mode`` selects the paper's ablations: "both", "embedding" only, "entropy"
+only (the entropy-only descriptor is [mean, std], so under cosine affinity it
+mostly separates by the std/mean ratio: a deliberately weak baseline).
+
+Choices, by measurement on training synthetic seeds 0-3 (segment descriptors
+clustered by MCL, adjusted Rand index against the segments' GT classes, best
+inflation each): mean softmax 0.65 vs centred-logit pooling 0.84, so logits
+are the default (mean softmax shares a uniform floor over all channels, which
+makes every high-entropy segment look alike). The entropy weight barely moved
+that score (0.25: 0.83, 1.0: 0.85) but at 1.0 the entropy part dominates the
+descriptor of uncertain segments and two different novel objects merged into
+one cluster in ``test_labeller``; 0.3 keeps the modulation without that.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ..params import param
+
+
+@dataclasses.dataclass(frozen=True)
+class ModulationConfig:
+    """How segment descriptors are pooled from the rendered embedding and entropy."""
+
+    mode: str = param("both", "descriptor content: embedding+entropy, or one of them "
+                      "(paper ablations)", choices=("both", "embedding", "entropy"))
+    pooling: str = param("logits", "embedding pooling: L2-normalised mean centred logits, or "
+                         "mean softmax", choices=("logits", "softmax"))
+    entropy_weight: float = param(0.3, "scale of the entropy part relative to the embedding "
+                                  "part", lo=0.0, hi=100.0)
+    entropy_std: bool = param(True, "append the entropy's standard deviation to its mean")
+
+
+@dataclasses.dataclass
+class SegmentStats:
+    """Per-segment summaries the labeller needs besides the descriptor."""
+
+    pixels: np.ndarray          # (n,) int64 pixel counts
+    mean_entropy: np.ndarray    # (n,) float32 mean entropy (nats)
+    std_entropy: np.ndarray     # (n,) float32 entropy standard deviation (nats)
+    argmax_hist: np.ndarray     # (n, S) int64 count of pixels whose embedding argmax is k
+    mean_prob: np.ndarray       # (n, S) float32 mean softmax
+
+
+def _check(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    segments, embedding, entropy = (np.asarray(a) for a in (segments, embedding, entropy))
+    if segments.ndim != 2:
+        raise ValueError(f"segments must be (H, W), got shape {segments.shape}")
+    if embedding.ndim != 3 or embedding.shape[:2] != segments.shape:
+        raise ValueError(f"embedding must be (H, W, S) with (H, W) = {segments.shape}, "
+                         f"got {embedding.shape}")
+    if entropy.shape != segments.shape:
+        raise ValueError(f"entropy must be {segments.shape}, got {entropy.shape}")
+    if embedding.shape[2] < 2:
+        raise ValueError(f"embedding needs at least 2 channels, got {embedding.shape[2]}")
+    if not np.issubdtype(segments.dtype, np.integer):
+        raise ValueError(f"segments must be an integer id image, got {segments.dtype}")
+    return segments, embedding.astype(np.float32, copy=False), entropy.astype(np.float32,
+                                                                              copy=False)
+
+
+def softmax(embedding: np.ndarray) -> np.ndarray:
+    """Softmax over the last axis, float32."""
+    z = embedding - embedding.max(axis=-1, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=-1, keepdims=True)
+
+
+def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
+                  ) -> tuple[SegmentStats, np.ndarray]:
+    """Per-segment stats plus the mean centred logits (n, S); ids 0..n-1, -1 = none.
+
+    Logits are centred per pixel (their channel mean subtracted) because softmax
+    ignores a common offset, so only the centred part carries information.
+    """
+    segments, embedding, entropy = _check(segments, embedding, entropy)
+    n = int(segments.max()) + 1 if segments.size else 0
+    S = embedding.shape[2]
+    flat = embedding.reshape(-1, S)
+    # Pixels with a non-finite embedding or entropy belong to no segment.
+    sel = (segments.ravel() >= 0) & np.isfinite(flat).all(axis=1) & np.isfinite(entropy.ravel())
+    ids = segments.ravel()[sel]
+    emb = flat[sel]
+    ent = entropy.ravel()[sel]
+    counts = np.bincount(ids, minlength=n).astype(np.int64)
+    inv = 1.0 / np.maximum(counts, 1)
+    prob = softmax(emb)
+    mean_prob = np.zeros((n, S), np.float64)
+    mean_logit = np.zeros((n, S), np.float64)
+    np.add.at(mean_prob, ids, prob)
+    np.add.at(mean_logit, ids, emb - emb.mean(axis=1, keepdims=True))
+    hist = np.zeros((n, S), np.int64)
+    np.add.at(hist, (ids, emb.argmax(axis=1)), 1)
+    ent_sum = np.bincount(ids, weights=ent, minlength=n)
+    ent_sq = np.bincount(ids, weights=ent.astype(np.float64) ** 2, minlength=n)
+    mean_ent = ent_sum * inv
+    std_ent = np.sqrt(np.maximum(ent_sq * inv - mean_ent ** 2, 0.0))
+    stats = SegmentStats(counts, mean_ent.astype(np.float32), std_ent.astype(np.float32), hist,
+                         (mean_prob * inv[:, None]).astype(np.float32))
+    return stats, (mean_logit * inv[:, None]).astype(np.float32)
+
+
+def descriptors_from_stats(stats: SegmentStats, mean_logit: np.ndarray,
+                           cfg: ModulationConfig) -> np.ndarray:
+    """(n, D) float32 descriptors from pooled statistics (see module docstring)."""
+    S = mean_logit.shape[1]
+    parts = []
+    if cfg.mode in ("both", "embedding"):
+        if cfg.pooling == "softmax":
+            parts.append(stats.mean_prob)
+        else:
+            norm = np.linalg.norm(mean_logit, axis=1, keepdims=True)
+            parts.append(mean_logit / np.maximum(norm, 1e-12))
+    if cfg.mode in ("both", "entropy"):
+        scale = cfg.entropy_weight / math.log(S)
+        ent = [stats.mean_entropy[:, None] * scale]
+        if cfg.entropy_std:
+            ent.append(stats.std_entropy[:, None] * scale)
+        parts.append(np.concatenate(ent, axis=1))
+    return np.concatenate(parts, axis=1).astype(np.float32)
+
+
+def segment_descriptors(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
+                        cfg: ModulationConfig = ModulationConfig()) -> np.ndarray:
+    """(n, D) float32 descriptor per segment id 0..n-1 (empty ids get a zero embedding part)."""
+    stats, mean_logit = segment_stats(segments, embedding, entropy)
+    return descriptors_from_stats(stats, mean_logit, cfg)
+
+
+def simulate_embedding(semantic: np.ndarray, instance: np.ndarray | None = None,
+                       channel_to_id: np.ndarray | None = None, peak: float = 4.0,
+                       novel_peak: float = 1.5, instance_std: float = 0.5,
+                       pixel_std: float = 0.7, seed: int = 0) -> np.ndarray:
+    """Stand-in backbone logits (H, W, S) from ground truth, for tests and tuning only.
+
+    Known class: a peak of ``peak`` on its channel. Novel class: a fixed,
+    class-specific low-contrast mix over 2-3 known channels (``novel_peak``),
+    the same in every scene (a backbone confuses a novel class consistently),
+    so novel pixels are high-entropy but separable. Every instance adds a
+    per-channel offset (``instance_std``), every pixel noise (``pixel_std``).
+    """
+    from ..classes import CHANNEL_TO_ID, NUM_CLASSES
+    c2i = CHANNEL_TO_ID if channel_to_id is None else np.asarray(channel_to_id)
+    S = c2i.size
+    table = np.zeros((NUM_CLASSES + 1, S), np.float32)
+    cls_rng = np.random.default_rng(12345)  # fixed: the "backbone" is the same everywhere
+    for cid in range(1, NUM_CLASSES + 1):
+        hit = np.flatnonzero(c2i == cid)
+        if hit.size:
+            table[cid, hit[0]] = peak
+        else:
+            ch = cls_rng.choice(S, size=int(cls_rng.integers(2, 4)), replace=False)
+            table[cid, ch] = novel_peak * cls_rng.uniform(0.6, 1.0, ch.size)
+    rng = np.random.default_rng(seed)
+    sem = np.asarray(semantic).astype(np.int64)
+    logits = table[np.clip(sem, 0, NUM_CLASSES)]
+    if instance is not None:
+        inst = np.asarray(instance).astype(np.int64)
+        ids, inv = np.unique(inst, return_inverse=True)
+        offs = rng.normal(0.0, instance_std, (ids.size, S)).astype(np.float32)
+        logits = logits + offs[inv.reshape(inst.shape)]
+    logits += rng.normal(0.0, pixel_std, logits.shape).astype(np.float32)
+    return logits.astype(np.float32)

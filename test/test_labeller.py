@@ -1,0 +1,219 @@
+"""Discoverer: known/novel naming, stable novel ids, full labelling, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from neurncd_ros.core.camera import Intrinsics
+from neurncd_ros.core.classes import CHANNEL_TO_ID, CLASS_ID, NOVEL_ID_START
+from neurncd_ros.core.discovery.labeller import Discoverer, DiscoveryConfig
+from neurncd_ros.core.discovery.mcl import MCLConfig
+from neurncd_ros.core.discovery.modulation import ModulationConfig, segment_descriptors, \
+    segment_stats, simulate_embedding, softmax
+
+torch.set_num_threads(1)
+
+H, W, S = 60, 80, len(CHANNEL_TO_ID)
+# Object "kinds": known classes by NYU-13 id, and two novel objects with their own
+# consistent low-contrast channel mixes (what a backbone does with unseen classes).
+NOVEL_MIX = {"A": {0: 1.2, 1: 1.0}, "B": {4: 1.1, 6: 1.3, 7: 0.9}}
+
+
+def _logits(kind, rng, n):
+    out = rng.normal(0, 0.3, (n, S)).astype(np.float32)
+    if kind in NOVEL_MIX:
+        for ch, v in NOVEL_MIX[kind].items():
+            out[:, ch] += v
+    else:
+        out[:, list(CHANNEL_TO_ID).index(CLASS_ID[kind])] += 5.0
+    return out
+
+
+def _frame(layout, seed):
+    """layout: list of (kind, (r0, r1, c0, c1)) boxes in segment-id order; rest unsegmented."""
+    rng = np.random.default_rng(seed)
+    segments = np.full((H, W), -1, np.int32)
+    emb = _logits("wall", rng, H * W).reshape(H, W, S)
+    kinds = np.full((H, W), "", dtype=object)
+    for i, (kind, (r0, r1, c0, c1)) in enumerate(layout):
+        segments[r0:r1, c0:c1] = i
+        emb[r0:r1, c0:c1] = _logits(kind, rng, (r1 - r0) * (c1 - c0)).reshape(r1 - r0,
+                                                                              c1 - c0, S)
+        kinds[r0:r1, c0:c1] = kind
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    return segments, emb, ent, kinds
+
+
+LAYOUT = [("wall", (0, 20, 0, 80)), ("A", (22, 32, 0, 12)), ("A", (22, 32, 14, 26)),
+          ("floor", (45, 60, 0, 80)), ("B", (22, 34, 40, 52)), ("B", (22, 34, 54, 66)),
+          ("chair", (34, 44, 68, 80))]
+
+
+def _discoverer(**kw):
+    cfg = DiscoveryConfig(min_cluster_pixels=50, **kw)
+    return Discoverer(cfg, CHANNEL_TO_ID, mcl_cfg=MCLConfig(k=10))
+
+
+def _label_of(labels, kinds, kind):
+    vals, counts = np.unique(labels[kinds == kind], return_counts=True)
+    return int(vals[np.argmax(counts)]), float(counts.max() / counts.sum())
+
+
+def test_known_and_novel_labels_and_stable_ids_across_frames():
+    d = _discoverer()
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+    lab = d.process_segments(seg, emb, ent)
+    assert lab.dtype == np.uint16 and lab.shape == (H, W)
+    for kind in ("wall", "floor", "chair"):
+        got, share = _label_of(lab, kinds, kind)
+        assert got == CLASS_ID[kind] and share == 1.0
+    a, sa = _label_of(lab, kinds, "A")
+    b, sb = _label_of(lab, kinds, "B")
+    assert a >= NOVEL_ID_START and b >= NOVEL_ID_START and a != b and sa == sb == 1.0
+    assert {a, b} == {NOVEL_ID_START, NOVEL_ID_START + 1}
+    # The same objects seen again, elsewhere and with segments listed in another order.
+    rng = np.random.default_rng(1)
+    for frame in range(2, 6):
+        layout = [LAYOUT[i] for i in rng.permutation(len(LAYOUT))]
+        seg, emb, ent, kinds = _frame(layout, frame)
+        lab = d.process_segments(seg, emb, ent)
+        assert _label_of(lab, kinds, "A") == (a, 1.0)
+        assert _label_of(lab, kinds, "B") == (b, 1.0)
+    cls = d.classes()
+    assert cls[a]["kind"] == "novel" and cls[CLASS_ID["wall"]]["kind"] == "known"
+    assert cls[CLASS_ID["wall"]]["name"] == "wall"
+    assert cls[a]["pixels"] == int((lab == a).sum()) > 0
+    assert sum(v["pixels"] for v in cls.values()) == H * W
+
+
+def test_new_novel_object_gets_a_fresh_id_and_ids_are_never_reused():
+    d = _discoverer()
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+    lab = d.process_segments(seg, emb, ent)
+    first = {_label_of(lab, kinds, "A")[0], _label_of(lab, kinds, "B")[0]}
+    # B leaves the view for good; a new novel kind C appears.
+    NOVEL_MIX["C"] = {5: 1.4, 2: 0.5}
+    try:
+        layout = [k for k in LAYOUT if k[0] != "B"] + [("C", (22, 34, 40, 52)),
+                                                      ("C", (22, 34, 54, 66))]
+        ids_c = set()
+        for frame in range(1, 4):
+            seg, emb, ent, kinds = _frame(layout, frame)
+            lab = d.process_segments(seg, emb, ent)
+            c, share = _label_of(lab, kinds, "C")
+            assert c >= NOVEL_ID_START and share == 1.0
+            ids_c.add(c)
+        assert len(ids_c) == 1 and not ids_c & first
+        assert _label_of(lab, kinds, "A")[0] in first
+    finally:
+        del NOVEL_MIX["C"]
+
+
+def test_cluster_numbering_does_not_change_ids():
+    d = _discoverer()
+    for frame in range(3):
+        seg, emb, ent, kinds = _frame(LAYOUT, frame)
+        d.process_segments(seg, emb, ent)
+    from neurncd_ros.core.discovery.mcl import markov_cluster
+    clusters = markov_cluster(d._mem.desc, d.mcl_cfg)
+    before = d.name_clusters(clusters)
+    perm = np.random.default_rng(3).permutation(clusters.max() + 1)
+    after = d.name_clusters(perm[clusters])
+    assert after.tolist() == before.tolist()
+    assert (before >= NOVEL_ID_START).any()
+
+
+def test_every_pixel_labelled_and_unsegmented_pixels_use_embedding_argmax():
+    d = _discoverer()
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+    lab = d.process_segments(seg, emb, ent)
+    assert (lab > 0).all()
+    free = seg < 0
+    assert free.any()
+    assert (lab[free] == CHANNEL_TO_ID[emb[free].argmax(-1)]).all()
+    # A non-finite embedding: inside a segment the segment's label still holds, outside
+    # it the pixel is the only kind that stays 0.
+    fy, fx = np.argwhere(free)[0]
+    emb[fy, fx] = np.nan
+    emb[0, 0] = np.nan
+    lab2 = _discoverer().process_segments(seg, emb, ent)
+    assert lab2[fy, fx] == 0 and lab2[0, 0] == lab[0, 0]
+    assert (lab2 > 0).sum() == H * W - 1
+
+
+def test_recluster_period_assigns_between_reclusterings():
+    d = _discoverer(recluster_period=3)
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+    lab0 = d.process_segments(seg, emb, ent)
+    a = _label_of(lab0, kinds, "A")[0]
+    seg, emb, ent, kinds = _frame(LAYOUT[::-1], 1)  # not a re-clustering frame
+    lab1 = d.process_segments(seg, emb, ent)
+    assert _label_of(lab1, kinds, "A") == (a, 1.0)
+    assert _label_of(lab1, kinds, "floor") == (CLASS_ID["floor"], 1.0)
+
+
+def test_memory_is_bounded_and_keeps_recent_frames():
+    d = _discoverer(memory_size=20, recent_frames=2)
+    for frame in range(8):
+        seg, emb, ent, _ = _frame(LAYOUT, frame)
+        d.process_segments(seg, emb, ent)
+    assert d.memory_len <= 20
+    assert (d._mem.frame >= 6).sum() == 2 * len(LAYOUT)
+
+
+def test_descriptor_modes_and_pooling():
+    seg, emb, ent, _ = _frame(LAYOUT, 0)
+    both = segment_descriptors(seg, emb, ent, ModulationConfig(pooling="softmax"))
+    assert both.shape == (len(LAYOUT), S + 2) and both.dtype == np.float32
+    assert np.allclose(both[:, :S].sum(1), 1.0, atol=1e-5)
+    emb_only = segment_descriptors(seg, emb, ent, ModulationConfig(mode="embedding",
+                                                                   pooling="softmax"))
+    assert np.allclose(emb_only, both[:, :S])
+    ent_only = segment_descriptors(seg, emb, ent, ModulationConfig(mode="entropy",
+                                                                   entropy_weight=1.0))
+    stats, _ = segment_stats(seg, emb, ent)
+    assert np.allclose(ent_only[:, 0], stats.mean_entropy / np.log(S), atol=1e-6)
+    logit = segment_descriptors(seg, emb, ent, ModulationConfig(pooling="logits",
+                                                                mode="embedding"))
+    assert np.allclose(np.linalg.norm(logit, axis=1), 1.0, atol=1e-5)
+    # Novel-object segments carry more entropy than the known ones.
+    assert stats.mean_entropy[[1, 2, 4, 5]].min() > stats.mean_entropy[[0, 3, 6]].max()
+    assert stats.pixels.tolist() == [int((seg == i).sum()) for i in range(len(LAYOUT))]
+
+
+def test_process_end_to_end_on_a_synthetic_frame():
+    synth = pytest.importorskip("neurncd_ros.core.data.synth")
+    from neurncd_ros.core.discovery.metrics import evaluate
+    d = Discoverer(DiscoveryConfig(), CHANNEL_TO_ID)
+    preds, gts = [], []
+    for i, f in enumerate(synth.generate(0, 7, synth.SynthConfig())):
+        if i % 3:
+            continue
+        emb = simulate_embedding(f.semantic, f.instance, seed=i)
+        p = softmax(emb)
+        ent = -(p * np.log(np.maximum(p, 1e-12))).sum(-1).astype(np.float32)
+        lab = d.process(f.depth, f.intrinsics, emb, ent, f.stamp_ns)
+        assert lab.shape == f.depth.shape and lab.dtype == np.uint16 and (lab > 0).all()
+        preds.append(lab)
+        gts.append(f.semantic)
+    r = evaluate(preds, gts)
+    # Known classes are mostly right with a clean stand-in embedding.
+    assert r["miou_known"] > 40.0, r
+
+
+def test_bad_inputs_raise_value_error():
+    d = _discoverer()
+    intr = Intrinsics.from_hfov(W, H)
+    depth = np.full((H, W), 2.0, np.float32)
+    with pytest.raises(ValueError, match="channel_to_id"):
+        d.process(depth, intr, np.zeros((H, W, S + 1), np.float32), np.zeros((H, W)))
+    with pytest.raises(ValueError, match="depth"):
+        d.process(depth[:10], intr, np.zeros((H, W, S), np.float32), np.zeros((H, W)))
+    with pytest.raises(ValueError, match="entropy"):
+        d.process_segments(np.zeros((H, W), np.int32), np.zeros((H, W, S), np.float32),
+                           np.zeros((H, 3)))
+    with pytest.raises(ValueError, match="NYU-13"):
+        Discoverer(DiscoveryConfig(), np.array([0, 50]))
