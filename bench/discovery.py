@@ -5,11 +5,14 @@ Writes bench/results/discovery.json (flat figures) and bench/results/geoseg.png
 
     .venv/bin/python bench/discovery.py            # full
     .venv/bin/python bench/discovery.py --quick    # fewer frames, no 20k run (smoke)
+    .venv/bin/python bench/discovery.py --only seg # segmentation figures only
 
 Figures:
 - geoseg_ms_320x240: median segmentation time per frame over 5 synthetic seeds
-  (10..14, realistic depth noise); segment_purity: pixel-weighted share of
-  segment pixels in their segment's majority GT instance; segments_per_frame;
+  (10..14, realistic depth noise), with the embedding-edge cue as the node runs
+  it; segment_purity: pixel-weighted share of segment pixels in their segment's
+  majority GT instance, with the cue; segment_purity_geometric_only: without
+  it; segments_per_frame (with the cue);
 - mcl_5k_s / mcl_20k_s: markov_cluster (top-30 cosine graph + MCL, inflation 2)
   timed end to end (graph + clustering)
   on noisy 38-d vectors in 12 groups, with the clusters found and adjusted Rand
@@ -83,19 +86,29 @@ def purity_counts(seg: np.ndarray, instance: np.ndarray) -> tuple[float, float]:
     return float(table.max(axis=1).sum()), float(table.sum())
 
 
-def bench_geoseg(frames: int, step: int) -> dict:
-    """Segmentation time, purity and segment count over the GEOSEG_SEEDS; saves the PNG."""
+def bench_geoseg(frames: int, step: int, embed) -> dict:
+    """Segmentation time, purity and segment count over the GEOSEG_SEEDS; saves the PNG.
+
+    As the node runs it: the embedding and entropy are passed to segment_depth
+    (embedding edges, timed with the rest); segment_purity_geometric_only is the
+    same frames without them.
+    """
     cfg = GeoSegConfig()
-    times, counts, good, total, rows = [], [], 0.0, 0.0, []
+    times, counts, rows = [], [], []
+    good, total, ggood, gtotal = 0.0, 0.0, 0.0, 0.0
     for seed in tqdm(GEOSEG_SEEDS, desc="geoseg seeds"):
         for k, f in enumerate(frames_of(seed, frames, step)):
-            segment_depth(f.depth, f.intrinsics, cfg) if not times else None  # warm-up
+            emb, ent = embed(f, k)
+            if not times:  # warm-up
+                segment_depth(f.depth, f.intrinsics, cfg, emb, ent)
             t = time.perf_counter()
-            seg = segment_depth(f.depth, f.intrinsics, cfg)
+            seg = segment_depth(f.depth, f.intrinsics, cfg, emb, ent)
             times.append(time.perf_counter() - t)
             counts.append(int(seg.max()) + 1)
             g, n = purity_counts(seg, f.instance)
             good, total = good + g, total + n
+            g, n = purity_counts(segment_depth(f.depth, f.intrinsics, cfg), f.instance)
+            ggood, gtotal = ggood + g, gtotal + n
             if k == 1 and len(rows) < 3:
                 segs = colourise(np.where(seg >= 0, seg + 100, 0).astype(np.uint16))
                 inst = colourise(np.where(f.instance > 0, f.instance % 900 + 100, 0)
@@ -107,6 +120,7 @@ def bench_geoseg(frames: int, step: int) -> dict:
     return {"geoseg_ms_320x240": 1000 * statistics.median(times),
             "geoseg_frames": len(times),
             "segment_purity": good / max(total, 1.0),
+            "segment_purity_geometric_only": ggood / max(gtotal, 1.0),
             "segments_per_frame": float(statistics.median(counts))}
 
 
@@ -215,6 +229,9 @@ def bench_e2e(embed, frames: int, step: int) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small smoke run")
+    ap.add_argument("--only", choices=("seg",), default=None,
+                    help="run only a part (seg: the segmentation figures; merged into the "
+                    "existing discovery.json)")
     ap.add_argument("--mcl-child", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.mcl_child:
@@ -225,7 +242,19 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     q = args.quick
     res: dict = {}
-    res.update(bench_geoseg(frames=6 if q else 40, step=3 if q else 4))
+    source, embed = embedder()
+    res["embedding_source"] = source
+    res.update(bench_geoseg(frames=6 if q else 40, step=3 if q else 4, embed=embed))
+    if args.only == "seg":
+        path = RESULTS / "discovery.json"
+        old = json.loads(path.read_text()) if path.exists() else {}
+        old.update(res)
+        old.update({"cores": os.cpu_count(), "commit": commit()})
+        path.write_text(json.dumps(old, indent=1, sort_keys=True))
+        for k in sorted(res):
+            v = res[k]
+            print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")
+        return
     five = bench_mcl(5000)
     res.update({"mcl_5k_s": five["s"], "mcl_5k_clusters": five["clusters"],
                 "mcl_5k_ari": five["ari"]})
@@ -240,8 +269,6 @@ def main() -> None:
                         "mcl_20k_ari": big["ari"], "mcl_20k_peak_rss_gb": big["peak_rss_gb"]})
         else:
             print(child.stderr[-2000:], file=sys.stderr)
-    source, embed = embedder()
-    res["embedding_source"] = source
     tuned, rows = bench_tuning(embed, frames=8 if q else 24, step=4)
     res.update(tuned)
     res.update(bench_e2e(embed, frames=9 if q else 45, step=3))

@@ -114,12 +114,39 @@ def synth_frames():
     for noise in ("none", "realistic"):
         cfg = synth.SynthConfig(depth_noise=noise)
         for seed in (0, 1):
-            frames = list(synth.generate(seed, 13, cfg))
-            out += [(noise, f) for f in frames[::6]]
+            out += [(noise, f) for f in synth.frames_at(seed, (0, 6, 12), cfg)]
     return out
 
 
+def _appearance(f, i: int):
+    """Embedding and entropy for a synthetic frame: the default backbone's logits when its
+    weights exist, otherwise the ground-truth stand-in (modulation.simulate_embedding)."""
+    from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, entropy
+    if DEFAULT_WEIGHTS.exists():
+        from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
+        emb = load_backbone(BackboneConfig(num_threads=1)).predict(f.rgb, f.depth)
+    else:
+        from neurncd_ros.core.discovery.modulation import simulate_embedding
+        emb = simulate_embedding(f.semantic, f.instance, seed=i)
+    return emb, entropy(emb)
+
+
+def _check_frame(seg, f, noise):
+    n = seg.max() + 1
+    assert 3 <= n <= 80, f"{noise}: {n} segments"
+    valid = f.depth > 0
+    # Nearly every measured pixel is segmented (the rest: dissolved tiny fragments and
+    # edge pixels whose normal disagrees with every neighbouring segment).
+    assert ((seg >= 0) | ~valid).mean() > 0.7
+    for rel in (0.3, 0.1):
+        bad, _ = _jump_pairs(seg, np.where(valid, f.depth, np.nan), rel)
+        assert bad == 0
+
+
 def test_synthetic_segments_are_pure_and_respect_depth_edges(synth_frames):
+    """Geometry only. Flush doors/pictures/TVs on walls cannot be cut by geometry, and
+    far Kinect-like depth blurs room corners, hence not 1.0 (measured on these frames:
+    0.96 exact, 0.92 noisy; on seeds 0-9 noisy 0.92, held-out 10-14 0.85)."""
     for noise in ("none", "realistic"):
         good = total = 0.0
         for kind, f in synth_frames:
@@ -128,19 +155,84 @@ def test_synthetic_segments_are_pure_and_respect_depth_edges(synth_frames):
             seg = segment_depth(f.depth, f.intrinsics)
             g, t = _purity(seg, f.instance)
             good, total = good + g, total + t
-            n = seg.max() + 1
-            assert 3 <= n <= 80, f"{noise}: {n} segments"
-            valid = f.depth > 0
-            # Nearly every measured pixel is segmented (the rest: dissolved tiny fragments).
-            assert ((seg >= 0) | ~valid).mean() > 0.85
-            bad, pairs = _jump_pairs(seg, np.where(valid, f.depth, np.nan), 0.3)
-            assert bad == 0
-            bad, pairs = _jump_pairs(seg, np.where(valid, f.depth, np.nan), 0.1)
-            assert bad == 0
-        # Flush doors/pictures/TVs on walls cannot be cut by geometry, hence not 1.0;
-        # Kinect-like noise costs a few points more (measured 0.94 exact, 0.89-0.90 noisy).
-        need = 0.9 if noise == "none" else 0.85
+            _check_frame(seg, f, noise)
+        need = 0.92 if noise == "none" else 0.88
         assert good / total >= need, f"{noise}: purity {good / total:.3f}"
+
+
+def test_embedding_edges_raise_purity_on_noisy_depth(synth_frames):
+    """With the appearance cue (as the discovery node runs it) realistic-noise purity
+    reaches the 0.90 target (measured 0.95 here; held-out seeds 10-14: 0.95)."""
+    good = total = ggood = gtotal = 0.0
+    for i, (kind, f) in enumerate(synth_frames):
+        if kind != "realistic":
+            continue
+        emb, ent = _appearance(f, i)
+        seg = segment_depth(f.depth, f.intrinsics, GeoSegConfig(), emb, ent)
+        _check_frame(seg, f, kind)
+        g, t = _purity(seg, f.instance)
+        good, total = good + g, total + t
+        g, t = _purity(segment_depth(f.depth, f.intrinsics), f.instance)
+        ggood, gtotal = ggood + g, gtotal + t
+    assert good / total >= 0.90, f"purity with the cue {good / total:.3f}"
+    assert good / total > ggood / gtotal, (good / total, ggood / gtotal)
+
+
+def test_flush_picture_is_cut_only_by_the_embedding():
+    """A picture flush with a flat wall: one segment from depth alone, its own segment
+    once its embedding differs from the wall's (and not when disabled)."""
+    h, w = 120, 160
+    intr = Intrinsics.from_hfov(w, h, 70.0)
+    depth = np.full((h, w), 2.5, np.float32)
+    picture = np.zeros((h, w), bool)
+    picture[30:80, 50:120] = True
+    emb = np.zeros((h, w, 9), np.float32)
+    emb[..., 8] = 4.0                      # wall: confident on the wall channel
+    emb[picture] = 0.0
+    emb[picture, 4] = emb[picture, 5] = 1.5  # picture: an uncertain mix of two channels
+    ent = np.ones((h, w), np.float32)
+    alone = segment_depth(depth, intr)
+    assert alone.max() == 0 and (alone == 0).all()
+    seg = segment_depth(depth, intr, GeoSegConfig(), emb, ent)
+    good, total = _purity(seg, picture.astype(np.int32) + 1)
+    assert good / total > 0.99
+    inner = seg[35:75, 55:115]
+    assert np.unique(inner).size == 1 and inner[0, 0] >= 0
+    assert (seg[5:20, 5:150] != inner[0, 0]).all()
+    off = segment_depth(depth, intr, GeoSegConfig(embedding_edges=False), emb, ent)
+    assert (off == 0).all()
+
+
+def test_entropy_edges_cut_where_the_entropy_changes():
+    h, w = 120, 160
+    intr = Intrinsics.from_hfov(w, h, 70.0)
+    depth = np.full((h, w), 2.5, np.float32)
+    ent = np.full((h, w), 0.2, np.float32)
+    ent[:, 80:] = 1.8
+    seg = segment_depth(depth, intr, GeoSegConfig(entropy_edges=True), entropy=ent)
+    assert seg.max() == 1
+    assert np.unique(seg[:, :70]).tolist() == [seg[0, 0]] != [seg[0, -1]]
+    assert segment_depth(depth, intr, entropy=ent).max() == 0  # off by default
+
+
+def test_bad_appearance_inputs_raise_value_error():
+    depth, intr, _ = _box_scene()
+    h, w = depth.shape
+    with pytest.raises(ValueError, match="embedding"):
+        segment_depth(depth, intr, GeoSegConfig(), np.zeros((h, w - 1, 9), np.float32))
+    with pytest.raises(ValueError, match="embedding"):
+        segment_depth(depth, intr, GeoSegConfig(), np.zeros((h, w, 9), np.int32))
+    with pytest.raises(ValueError, match="entropy"):
+        segment_depth(depth, intr, GeoSegConfig(), np.zeros((h, w, 9), np.float32),
+                      np.zeros((h, w, 1), np.float32))
+
+
+def test_non_finite_embedding_is_no_edge():
+    depth, intr, truth = _box_scene()
+    emb = np.zeros(depth.shape + (9,), np.float32)
+    emb[10:20, 10:20] = np.nan
+    seg = segment_depth(depth, intr, GeoSegConfig(), emb, np.zeros(depth.shape, np.float32))
+    assert (seg == segment_depth(depth, intr)).all()
 
 
 def _kinect(real_data_dir, i: int, scale: float = 1.0):

@@ -74,8 +74,10 @@ def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_pat
             pubs["/camera/depth/image_raw"].publish(d)
 
         # A frame whose depth does not match colour is skipped with a log, not a crash.
-        send(2_000_000_000, depth_w=200)
-        spin_until(node, lambda: False, 1.0)
+        for _ in range(10):
+            send(2_000_000_000, depth_w=200)
+            if spin_until(node, lambda: "skipped frame 2000000000" in log.read_text(), 3):
+                break
         stamp = 2_500_000_000
         for _ in range(10):
             send(stamp)
@@ -91,9 +93,10 @@ def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_pat
         assert not any(msgconv.stamp_to_ns(m.header.stamp) == 2_000_000_000 for m in got)
         assert proc.poll() is None, "the node died"
     finally:
-        stop(proc)
+        code = stop(proc)
     text = log.read_text()
     assert "skipped frame 2000000000" in text and "registered to colour" in text
+    assert code == 0 and "frames paired" in text, "the node must shut down cleanly on Ctrl-C"
 
 
 @pytest.mark.parametrize("args, expect", [

@@ -118,14 +118,18 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
     ensure_dds_profile()
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(args=[name, *ros_args])
+    # Ctrl-C arrives as KeyboardInterrupt while the context is still valid, so
+    # the node can save its map and log a summary before shutdown.
+    rclpy.init(args=[name, *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = factory()
         executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
-        executor.spin()
+        while rclpy.ok():  # short waits so Ctrl-C is seen promptly
+            executor.spin_once(timeout_sec=0.2)
     except ConfigError as err:
         print(f"{name}: configuration error: {err}", file=sys.stderr)
         return 2

@@ -122,6 +122,27 @@ class GeoSegConfig:
                                      lo=0, hi=1000, unit="px")
     max_depth: float = param(10.0, "depth beyond this is treated as invalid", lo=0.1,
                              hi=1000.0, unit="m")
+    reassign_normal_cos: float = param(
+        0.8, "a reassigned pixel's normal must have at least this cosine to the normal of "
+        "the segment pixel its growth started from (-1 = no check)", lo=-1.0, hi=1.0)
+    convexity_centroids: bool = param(
+        True, "min-convexity compares window centroids (noise-averaged points) instead of "
+        "raw points")
+    embedding_edges: bool = param(True, "cut where the softmax of neighbouring embeddings "
+                                  "differs (when an embedding is given)")
+    embedding_edge_threshold: float = param(
+        0.3, "total-variation distance of neighbouring softmax vectors above this is an edge",
+        lo=0.0, hi=1.0)
+    embedding_edge_kernel: int = param(5, "box size smoothing embedding and entropy before "
+                                       "the edge test (1 = none)", lo=1, hi=31, unit="px")
+    embedding_edge_step: int = param(4, "distance of the compared neighbours", lo=1, hi=16,
+                                     unit="px")
+    entropy_edges: bool = param(False, "cut where the normalised entropy changes (when an "
+                                "entropy is given)")
+    entropy_edge_threshold: float = param(0.2, "change of entropy / log(S) between neighbours "
+                                          "above this is an edge", lo=0.0, hi=1.0)
+    entropy_channels: int = param(9, "S used to normalise the entropy when no embedding is "
+                                  "given", lo=2, hi=1000)
 
 
 def _odd(size: float) -> int:
@@ -145,6 +166,9 @@ def scaled_sizes(cfg: GeoSegConfig, width: int) -> dict[str, int]:
         "edge_closing": max(1, int(round(cfg.edge_closing * s))) if cfg.edge_closing else 0,
         "min_segment_size": max(1, int(round(cfg.min_segment_size * s * s))),
         "reassign_iterations": int(math.ceil(cfg.reassign_iterations * s)),
+        "embedding_edge_kernel": (_odd(cfg.embedding_edge_kernel * s)
+                                  if cfg.embedding_edge_kernel > 1 else 1),
+        "embedding_edge_step": max(1, int(round(cfg.embedding_edge_step * s))),
     }
 
 
@@ -190,31 +214,42 @@ def discontinuity_edges(depth: np.ndarray, valid: np.ndarray, kernel: int, ratio
 def surface_normals(pts: np.ndarray, weight: np.ndarray, window: int) -> np.ndarray:
     """Unit normals (3, H, W) from the weighted local covariance, facing the camera.
 
-    Planar (channel-first) float64 arithmetic keeps the covariance of metre-scale
-    points with millimetre spread exact enough. Pixels with fewer than 3
-    weighted neighbours get a zero normal.
+    Pixels with fewer than 3 weighted neighbours get a zero normal.
     """
-    w = weight.astype(np.float64)
-    x, y, z = (pts[..., i].astype(np.float64) for i in range(3))
-    wx, wy, wz = w * x, w * y, w * z
-    ksize = (window, window)
+    return local_planes(pts, weight, window)[0]
 
-    def box(a: np.ndarray) -> np.ndarray:
-        return cv2.boxFilter(a, -1, ksize, normalize=False, borderType=cv2.BORDER_CONSTANT)
 
-    n = box(w)
+def local_planes(pts: np.ndarray, weight: np.ndarray, window: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (3, H, W), centroids (3, H, W)) of the weighted points in each window.
+
+    The ten weighted moment sums go through one multi-channel float64 box filter:
+    float64 keeps the covariance of metre-scale points with millimetre spread
+    exact; the centred covariance is well conditioned, so the eigen-solve runs in
+    float32. The centroid is the window's mean point (a noise-averaged surface point).
+    """
+    h, wd = weight.shape
+    mom = np.empty((h, wd, 10), np.float64)
+    w, wx, wy, wz = (mom[..., i] for i in range(4))
+    w[...] = weight
+    x, y, z = (pts[..., i] for i in range(3))
+    np.multiply(w, x, out=wx)
+    np.multiply(w, y, out=wy)
+    np.multiply(w, z, out=wz)
+    for i, (a, b) in enumerate(((wx, x), (wx, y), (wx, z), (wy, y), (wy, z), (wz, z))):
+        np.multiply(a, b, out=mom[..., 4 + i])
+    mom = cv2.boxFilter(mom, -1, (window, window), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)
+    n = mom[..., 0]
     ok = n >= 3
     inv = np.where(ok, 1.0 / np.maximum(n, 1.0), 0.0)
-    mx, my, mz = box(wx) * inv, box(wy) * inv, box(wz) * inv
-    a00 = box(wx * x) * inv - mx * mx
-    a01 = box(wx * y) * inv - mx * my
-    a02 = box(wx * z) * inv - mx * mz
-    a11 = box(wy * y) * inv - my * my
-    a12 = box(wy * z) * inv - my * mz
-    a22 = box(wz * z) * inv - mz * mz
-    # The centred covariance is well conditioned: the eigen-solve can run in float32.
-    a00, a01, a02, a11, a12, a22 = (a.astype(np.float32) for a in (a00, a01, a02, a11, a12,
-                                                                   a22))
+    mx, my, mz = mom[..., 1] * inv, mom[..., 2] * inv, mom[..., 3] * inv
+    a00 = (mom[..., 4] * inv - mx * mx).astype(np.float32)
+    a01 = (mom[..., 5] * inv - mx * my).astype(np.float32)
+    a02 = (mom[..., 6] * inv - mx * mz).astype(np.float32)
+    a11 = (mom[..., 7] * inv - my * my).astype(np.float32)
+    a12 = (mom[..., 8] * inv - my * mz).astype(np.float32)
+    a22 = (mom[..., 9] * inv - mz * mz).astype(np.float32)
     lam = _smallest_eigenvalue(a00, a01, a02, a11, a12, a22)
     b00, b11, b22 = a00 - lam, a11 - lam, a22 - lam
     # Eigenvector: the longest cross product of two rows of (C - lam I).
@@ -232,7 +267,9 @@ def surface_normals(pts: np.ndarray, weight: np.ndarray, window: int) -> np.ndar
     scale = np.where(good, 1.0 / np.sqrt(np.where(good, best, 1.0)), 0.0).astype(np.float32)
     # Orient towards the camera (negative z in the optical frame), as the package does.
     scale = np.where(vec[2] > 0, -scale, scale)
-    return np.stack([v * scale for v in vec]).astype(np.float32)
+    normals = np.stack([v * scale for v in vec]).astype(np.float32)
+    centroids = np.stack([mx, my, mz]).astype(np.float32)
+    return normals, centroids
 
 
 def _smallest_eigenvalue(a00, a01, a02, a11, a12, a22) -> np.ndarray:
@@ -274,14 +311,14 @@ def convex_map(pts: np.ndarray, normals: np.ndarray, valid: np.ndarray, window: 
                ) -> np.ndarray:
     """True where every neighbour pair in the window is convex or nearly coplanar.
 
-    ``pts`` is (H, W, 3), ``normals`` (3, H, W) as returned by :func:`surface_normals`.
+    ``pts`` and ``normals`` are planar (3, H, W), as returned by :func:`local_planes`.
     ``compass``: compare only the 8 neighbours at the window's corners and edge
     midpoints (the package's step-size subsampling), 8 comparisons for any window.
     """
     h, w = valid.shape
     r = window // 2
     steps = (-r, 0, r) if compass else range(-r, r + 1)
-    P = [np.ascontiguousarray(pts[..., i]) for i in range(3)]
+    P = [pts[i] for i in range(3)]
     N = [normals[i] for i in range(3)]
     has_normal = valid & ((N[0] != 0) | (N[1] != 0) | (N[2] != 0))
     min_conv = np.full((h, w), 10.0, np.float32)
@@ -322,16 +359,21 @@ _NEIGHBOURS = ((-1, 0), (1, 0), (0, -1), (0, 1))
 
 
 def _nearest_label(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: float,
-                   max_px: int) -> np.ndarray:
+                   max_px: int, normals: np.ndarray | None = None, min_cos: float = -1.0
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """One pass: unlabelled valid pixels take the label of the nearest labelled pixel.
 
-    Accepted only if that pixel is within ``max_px`` pixels and closer in 3D than
-    ``ratio * z``: a fast first pass over the thin edge bands; wider gaps are left
-    to the step-by-step growth.
+    Accepted only if that pixel is within ``max_px`` pixels, closer in 3D than
+    ``ratio * z`` and (with ``normals``) its normal is within ``acos(min_cos)``:
+    a fast first pass over the thin edge bands; wider gaps are left to the
+    step-by-step growth. Returns the labels and, per pixel, the flat index of the
+    segment pixel whose normal is its growth reference (-1 = none).
     """
+    h, w = labels.shape
+    ref = np.where(labels.ravel() >= 0, np.arange(h * w), -1)
     free = valid & (labels < 0)
     if not free.any() or not (labels >= 0).any():
-        return labels
+        return labels, ref
     src = np.where(labels >= 0, 0, 1).astype(np.uint8)
     dist, near = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5,
                                                  labelType=cv2.DIST_LABEL_PIXEL)
@@ -346,25 +388,46 @@ def _nearest_label(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio
     q3 = pts.reshape(-1, 3)[q]
     gap = np.linalg.norm(p3 - q3, axis=1)
     ok = (d2 <= max_px) & (gap < ratio * p3[:, 2])
+    if normals is not None:
+        N = normals.reshape(3, -1)
+        ok &= _normals_agree(N, fy * w + fx, q, min_cos)
     out = labels.copy()
     out[fy[ok], fx[ok]] = labels.ravel()[q[ok]]
-    return out
+    ref[(fy * w + fx)[ok]] = q[ok]
+    return out, ref
+
+
+def _normals_agree(N: np.ndarray, i: np.ndarray, j: np.ndarray, min_cos: float) -> np.ndarray:
+    """n_i . n_j >= min_cos, or either normal unknown (zero)."""
+    dot = (N[:, i] * N[:, j]).sum(axis=0)
+    unknown = ~(N[:, i].any(axis=0) & N[:, j].any(axis=0))
+    return unknown | (dot >= min_cos)
 
 
 def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: float,
-             iterations: int) -> np.ndarray:
+             iterations: int, normals: np.ndarray | None = None, min_cos: float = -1.0
+             ) -> np.ndarray:
     """Grow segments into unlabelled valid pixels through 3D-close 4-neighbours.
 
     Each step, every unlabelled pixel on the growth front takes the label of
     its labelled 4-neighbour nearest in 3D if that distance is below
     ``ratio * z``; the next front is the unlabelled neighbours of the pixels
-    just labelled.
+    just labelled. With ``normals``, a grown pixel carries the normal of the
+    segment pixel its growth started from, and a pixel whose own normal is
+    farther than ``acos(min_cos)`` from that reference is not taken: growth
+    cannot turn a room corner, however gently the smoothed normals turn.
     """
     h, w = labels.shape
     W = w + 2
-    labels = _nearest_label(labels, pts, valid, ratio, 3)
+    labels, ref0 = _nearest_label(labels, pts, valid, ratio, 3, normals, min_cos)
     lab = np.pad(labels, 1, constant_values=-1).ravel()
     P = np.pad(pts, ((1, 1), (1, 1), (0, 0))).reshape(-1, 3)
+    gate = normals is not None and min_cos > -1.0
+    if gate:
+        Np = np.pad(normals, ((0, 0), (1, 1), (1, 1))).reshape(3, -1)
+        # Reference pixel (padded flat index) per labelled pixel.
+        ref0 = np.where(ref0 >= 0, (ref0 // w + 1) * W + ref0 % w + 1, -1)
+        ref = np.pad(ref0.reshape(h, w), 1, constant_values=-1).ravel()
     open_ = (np.pad(valid, 1) & (lab.reshape(h + 2, W) < 0)).ravel()
     offsets = np.array([dy * W + dx for dy, dx in _NEIGHBOURS])
     # The first front: open pixels with a labelled 4-neighbour.
@@ -379,13 +442,22 @@ def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: floa
         diff = P[nb] - P[todo][:, None, :]
         dist = np.einsum("nki,nki->nk", diff, diff)
         limit = (ratio * P[todo, 2]) ** 2
-        dist = np.where((nlab >= 0) & (dist < limit[:, None]), dist, np.inf)
+        ok = (nlab >= 0) & (dist < limit[:, None])
+        if gate:
+            r = np.where(ok, ref[nb], 0)
+            dot = np.einsum("in,ink->nk", Np[:, todo], Np[:, r])
+            known = Np[:, todo].any(axis=0)[:, None] & Np[:, r].any(axis=0)
+            ok &= ~known | (dot >= min_cos)
+        dist = np.where(ok, dist, np.inf)
         k = np.argmin(dist, axis=1)
         ok = np.isfinite(dist[np.arange(todo.size), k])
         if not ok.any():
             break
         done = todo[ok]
-        lab[done] = nlab[ok, k[ok]]
+        src = nb[ok, k[ok]]
+        lab[done] = lab[src]
+        if gate:
+            ref[done] = ref[src]
         open_[done] = False
         nxt = (done[:, None] + offsets[None, :]).ravel()
         todo = np.unique(nxt[open_[nxt]])
@@ -403,9 +475,10 @@ def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: floa
     return lab.reshape(h + 2, W)[1:-1, 1:-1]
 
 
-def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig
+def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig,
+             embedding: np.ndarray | None = None, entropy: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(inside, valid, points): inside = valid pixels that are no edge."""
+    """(inside, valid, points, normals): inside = valid pixels that are no edge."""
     depth = _check_inputs(depth, intr)
     sz = scaled_sizes(cfg, depth.shape[1])
     valid = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth)
@@ -414,12 +487,12 @@ def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig
     disc = (discontinuity_edges(depth, valid, sz["discontinuity_kernel"], cfg.discontinuity_ratio)
             if cfg.use_discontinuity else np.zeros_like(valid))
     weight = valid & ~disc if cfg.normals_exclude_discontinuities else valid
-    normals = surface_normals(pts, weight, sz["normals_window"])
+    normals, centroids = local_planes(pts, weight, sz["normals_window"])
     mask_threshold = cfg.convexity_mask_threshold
     if cfg.convexity_noise_factor > 0:
-        mask_threshold = mask_threshold - cfg.convexity_noise_factor * axial_sigma(pts[..., 2],
-                                                                                   cfg)
-    convex = convex_map(pts, normals, valid, sz["convexity_window"], cfg.convexity_threshold,
+        mask_threshold = mask_threshold - cfg.convexity_noise_factor * axial_sigma(depth, cfg)
+    where = centroids if cfg.convexity_centroids else np.moveaxis(pts, -1, 0)
+    convex = convex_map(where, normals, valid, sz["convexity_window"], cfg.convexity_threshold,
                         mask_threshold, cfg.convexity_compass).astype(np.uint8)
     if sz["convexity_opening"] > 0:
         k = 2 * sz["convexity_opening"] + 1
@@ -432,16 +505,93 @@ def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig
         k = 2 * sz["edge_closing"] + 1
         cut = cv2.morphologyEx(cut, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8))
     inside = valid & (convex > 0) & (cut == 0)
-    return inside, valid, pts
+    if embedding is not None or entropy is not None:
+        inside &= ~appearance_edges(embedding, entropy, valid.shape, cfg, sz)
+    return inside, valid, pts, normals
 
 
-def segment_depth(depth: np.ndarray, intrinsics: Intrinsics, cfg: GeoSegConfig = GeoSegConfig()
+def _check_appearance(embedding: np.ndarray | None, entropy: np.ndarray | None,
+                      shape: tuple[int, int]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if embedding is not None:
+        embedding = np.asarray(embedding)
+        if embedding.ndim != 3 or embedding.shape[:2] != shape or embedding.shape[2] < 2:
+            raise ValueError(f"embedding must be (H, W, S) with (H, W) = {shape} and S >= 2, "
+                             f"got {embedding.shape}")
+        if not np.issubdtype(embedding.dtype, np.floating):
+            raise ValueError(f"embedding must be float logits, got dtype {embedding.dtype}")
+    if entropy is not None:
+        entropy = np.asarray(entropy)
+        if entropy.shape != shape:
+            raise ValueError(f"entropy must be (H, W) = {shape}, got {entropy.shape}")
+        if not np.issubdtype(entropy.dtype, np.floating):
+            raise ValueError(f"entropy must be float, got dtype {entropy.dtype}")
+    return embedding, entropy
+
+
+def _pair_change(a: np.ndarray, step: int, dist) -> np.ndarray:
+    """Largest ``dist`` between the two pixels ``step`` px before and after each pixel,
+    horizontally and vertically (a centred difference: the band it marks is about
+    2 * ``step`` wide, closed under 4-connectivity, and spans the smoothing kernel)."""
+    h, w = a.shape[:2]
+    out = np.zeros((h, w), np.float32)
+    s2 = 2 * step
+    if w > s2:
+        out[:, step:w - step] = dist(a[:, :w - s2], a[:, s2:])
+    if h > s2:
+        np.maximum(out[step:h - step], dist(a[:h - s2], a[s2:]), out=out[step:h - step])
+    return out
+
+
+def appearance_edges(embedding: np.ndarray | None, entropy: np.ndarray | None,
+                     shape: tuple[int, int], cfg: GeoSegConfig, sz: dict[str, int]
+                     ) -> np.ndarray:
+    """Embedding edges (softmax total variation) unioned with entropy-change edges.
+
+    Both maps are box-smoothed over ``embedding_edge_kernel`` first (the rendered
+    embedding is smooth; a backbone's per-pixel noise is not), then a pixel is
+    an edge where a neighbour ``embedding_edge_step`` px away differs by more
+    than the threshold. Non-finite embedding or entropy pixels are no edge.
+    """
+    embedding, entropy = _check_appearance(embedding, entropy, shape)
+    edges = np.zeros(shape, bool)
+    k = sz["embedding_edge_kernel"]
+    step = sz["embedding_edge_step"]
+    if embedding is not None and cfg.embedding_edges:
+        S = embedding.shape[2]
+        # Channel sums as matrix products (numpy's reduction over a short last axis is slow);
+        # softmax ignores a per-pixel offset, so centring on the mean and clipping keeps
+        # exp finite without the channel maximum.
+        ones = np.ones((S, 1), np.float32)
+        logit = np.nan_to_num(embedding.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        logit = logit.reshape(-1, S)
+        z = np.clip(logit - (logit @ ones) * np.float32(1.0 / S), -60.0, 60.0)
+        e = np.exp(z)
+        prob = (e / (e @ ones)).reshape(shape + (S,))
+        if k > 1:
+            prob = cv2.blur(prob, (k, k), borderType=cv2.BORDER_REPLICATE).reshape(shape + (S,))
+        half = np.full((S,), 0.5, np.float32)
+        tv = _pair_change(prob, step, lambda a, b: np.abs(a - b) @ half)
+        edges |= tv > cfg.embedding_edge_threshold
+    if entropy is not None and cfg.entropy_edges:
+        ent = np.nan_to_num(entropy.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        S = embedding.shape[2] if embedding is not None else cfg.entropy_channels
+        ent = ent / np.float32(math.log(S))
+        if k > 1:
+            ent = cv2.blur(ent, (k, k), borderType=cv2.BORDER_REPLICATE)
+        edges |= _pair_change(ent, step, lambda a, b: np.abs(a - b)) > cfg.entropy_edge_threshold
+    return edges
+
+
+def segment_depth(depth: np.ndarray, intrinsics: Intrinsics, cfg: GeoSegConfig = GeoSegConfig(),
+                  embedding: np.ndarray | None = None, entropy: np.ndarray | None = None
                   ) -> np.ndarray:
     """Convex segments of a depth image: (H, W) int32 ids 0..n-1, -1 = no segment.
 
     ``depth`` is float metric z-depth, 0 (or non-finite) where unmeasured.
+    ``embedding`` (H, W, S) logits and ``entropy`` (H, W), both optional, add
+    appearance edges (:func:`appearance_edges`) to the geometric ones.
     """
-    inside, valid, pts = edge_map(depth, intrinsics, cfg)
+    inside, valid, pts, normals = edge_map(depth, intrinsics, cfg, embedding, entropy)
     sz = scaled_sizes(cfg, inside.shape[1])
     n, cc, stats, _ = cv2.connectedComponentsWithStats(inside.astype(np.uint8), connectivity=4,
                                                        ltype=cv2.CV_32S)
@@ -450,5 +600,6 @@ def segment_depth(depth: np.ndarray, intrinsics: Intrinsics, cfg: GeoSegConfig =
     remap = np.full(n, -1, np.int32)
     remap[keep] = np.arange(int(keep.sum()), dtype=np.int32)
     labels = remap[cc]
-    labels = reassign(labels, pts, valid, cfg.reassign_ratio, sz["reassign_iterations"])
+    labels = reassign(labels, pts, valid, cfg.reassign_ratio, sz["reassign_iterations"],
+                      normals, cfg.reassign_normal_cos)
     return labels.astype(np.int32, copy=False)

@@ -155,7 +155,9 @@ class Discoverer:
         if embedding.shape[:2] != np.asarray(depth).shape:
             raise ValueError(f"embedding is {embedding.shape[:2]} but depth is "
                              f"{np.asarray(depth).shape}")
-        segments = segment_depth(depth, intrinsics, self.seg_cfg)
+        # The embedding and entropy also cut segments where the appearance changes
+        # (geoseg's embedding edges): flush pictures, TVs and windows leave the wall.
+        segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy)
         labels = self.process_segments(segments, embedding, entropy)
         self.last_stamp_ns = int(stamp_ns)
         return labels
