@@ -59,11 +59,11 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
     ev_ncd, ev_backbone = Evaluator(), Evaluator()
     pending: deque[tuple[int, Frame, np.ndarray]] = deque()
     min_iters = cfg.mapper.min_iterations_before_publish
-    n_in = n_labelled = n_overlays = 0
+    n_in = n_labelled = n_overlays = n_evaluated = 0
     t_backbone = t_train = t_discovery = 0.0
 
     def label(frame: Frame, backbone_ids: np.ndarray) -> None:
-        nonlocal n_labelled, n_overlays, t_discovery
+        nonlocal n_labelled, n_overlays, n_evaluated, t_discovery
         t0 = time.perf_counter()
         rendering = mapper.render(frame.pose, frame.intrinsics)
         labels = discoverer.process(frame.depth, frame.intrinsics, rendering["embedding"],
@@ -73,6 +73,7 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
         if frame.semantic is not None:
             ev_ncd.update(labels, frame.semantic)
             ev_backbone.update(backbone_ids, frame.semantic)
+            n_evaluated += 1
         if n_overlays < run.overlays:
             pic = _overlay(frame, labels, backbone_ids, rendering["entropy"])
             cv2.imwrite(str(out / "overlays" / f"{frame.stamp_ns}.png"), pic[:, :, ::-1])
@@ -117,7 +118,7 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
         "classes": {str(k): v for k, v in discoverer.classes().items()},
         "out_dir": str(out),
     }
-    if ev_ncd.frames:
+    if n_evaluated:
         result["metrics"] = ev_ncd.result()
         result["metrics_backbone_only"] = ev_backbone.result()
     (out / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
