@@ -1,0 +1,289 @@
+"""Embedding-NeRF benchmark: fast vs reference backend on one streamed synthetic scene.
+
+The scene (seed 7, 300 frames at 320x240, 30 Hz) is fed to a Mapper as the
+online system would: frames arrive at 30 Hz on the training clock while the
+mapper trains in its background thread. Every 10th frame is held out (never
+offered); ``--eval-frames`` of them are rendered at each wall-time checkpoint
+(training paused, evaluation excluded from the clock) on a 4-pixel grid of
+exact full-resolution pixels (80x60 rays per frame; 8-pixel grid in --quick).
+
+Figures per checkpoint: held-out colour PSNR, median depth error, argmax
+agreement with the backbone's embedding of the held-out frame, and known-class
+accuracy against ground truth (pixels whose GT is a known class). Writes
+bench/results/field.json and bench/results/field.png.
+
+    .venv/bin/python bench/field.py                 # full: fast 120 s, reference 600 s
+    .venv/bin/python bench/field.py --quick         # smoke: fast 30 s, reference 40 s,
+                                                    # 4 eval frames at 40x30 rays
+    .venv/bin/python bench/field.py --embedding gt  # noisy one-hot GT logits, no backbone
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from neurncd_ros.core import classes  # noqa: E402
+from neurncd_ros.core.camera import camera_directions  # noqa: E402
+from neurncd_ros.core.data.synth import SynthConfig, generate  # noqa: E402
+from neurncd_ros.core.field.mapper import Mapper, MapperConfig  # noqa: E402
+
+RESULTS = REPO / "bench" / "results"
+FAST_CHECKPOINTS = [5, 10, 20, 40, 60, 90, 120]
+REFERENCE_CHECKPOINTS = [60, 120, 300, 600]
+
+
+def commit() -> str:
+    """Short hash of HEAD, or 'uncommitted' when there is none."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
+            else "uncommitted"
+    except (OSError, subprocess.SubprocessError):
+        return "uncommitted"
+
+
+def gt_embedding(semantic: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Stand-in backbone: 5 x one-hot of the known class + N(0, 1); novel/void pixels noise."""
+    emb = rng.normal(0.0, 1.0, semantic.shape + (classes.NUM_KNOWN,)).astype(np.float32)
+    for cid, k in classes.ID_TO_CHANNEL.items():
+        emb[..., k] += 5.0 * (semantic == cid)
+    return emb
+
+
+def embeddings(frames, mode: str) -> tuple[list[np.ndarray], np.ndarray, str]:
+    """Per-frame logits (float16 to save memory), channel_to_id, and what produced them."""
+    if mode in ("auto", "backbone"):
+        try:
+            from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
+            bb = load_backbone(BackboneConfig())
+            out = [bb.predict(f.rgb, f.depth).astype(np.float16)
+                   for f in tqdm(frames, desc="backbone", leave=False)]
+            return out, np.asarray(bb.channel_to_id), "backbone(default)"
+        except (ImportError, ValueError, OSError) as exc:
+            if mode == "backbone":
+                raise
+            print(f"backbone unavailable ({exc}); using noisy ground-truth logits")
+    rng = np.random.default_rng(0)
+    return ([gt_embedding(f.semantic, rng).astype(np.float16) for f in frames],
+            classes.CHANNEL_TO_ID.copy(), "gt(5*onehot+N(0,1))")
+
+
+EVAL_STRIDE = 4
+
+
+def eval_rays(f, stride: int | None = None):
+    """Rays and targets of a grid of exact full-resolution pixels (centre of each block)."""
+    stride = stride or EVAL_STRIDE
+    h, w = f.intrinsics.height, f.intrinsics.width
+    v, u = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
+    u, v = u.ravel(), v.ravel()
+    d = camera_directions(f.intrinsics, u, v) @ f.pose[:3, :3].T
+    o = np.broadcast_to(f.pose[:3, 3], d.shape)
+    return o, d, u, v
+
+
+def evaluate(mapper: Mapper, frames, embs, channel_to_id) -> dict[str, float]:
+    """Held-out PSNR, depth error, agreement with the backbone, known accuracy vs GT."""
+    psnr, derr, agree, known_ok, known_n = [], [], [], 0, 0
+    for f, e in zip(frames, embs):
+        o, d, u, v = eval_rays(f)
+        out = mapper.render_rays(o, d)
+        mse = float(np.mean((out["rgb"] - f.rgb[v, u] / 255.0) ** 2))
+        psnr.append(-10 * math.log10(max(mse, 1e-10)))
+        z = f.depth[v, u]
+        ok = z > 0
+        derr.append(np.abs(out["depth"][ok] - z[ok]))
+        pred = out["embedding"].argmax(-1)
+        agree.append(float(np.mean(pred == e[v, u].astype(np.float32).argmax(-1))))
+        gt = f.semantic[v, u]
+        known = np.isin(gt, classes.KNOWN_IDS)
+        known_ok += int((channel_to_id[pred] == gt)[known].sum())
+        known_n += int(known.sum())
+    return {"psnr": float(np.mean(psnr)), "depth_err_cm": 100 * float(np.median(
+        np.concatenate(derr))), "agreement": float(np.mean(agree)),
+        "known_acc": known_ok / max(known_n, 1)}
+
+
+def backbone_known_acc(frames, embs, channel_to_id) -> float:
+    ok = n = 0
+    for f, e in zip(frames, embs):
+        _, _, u, v = eval_rays(f)
+        gt = f.semantic[v, u]
+        known = np.isin(gt, classes.KNOWN_IDS)
+        ok += int((channel_to_id[e[v, u].astype(np.float32).argmax(-1)] == gt)[known].sum())
+        n += int(known.sum())
+    return ok / max(n, 1)
+
+
+def run_stream(backend: str, frames, embs, held, checkpoints, eval_set, channel_to_id,
+               threads: int, fps: float) -> list[dict]:
+    """Feed frames at ``fps`` on the training clock while training; evaluate at checkpoints."""
+    cfg = MapperConfig(backend=backend, num_threads=threads, seed=0)
+    mapper = Mapper(cfg, embs[0].shape[-1])
+    eval_frames = [frames[i] for i in eval_set]
+    eval_embs = [embs[i] for i in eval_set]
+    curve, nxt, clock, admitted = [], 0, 0.0, 0
+    bar = tqdm(total=checkpoints[-1], desc=backend, unit="s")
+    mapper.start()
+    resumed = time.monotonic()
+    for cp in checkpoints:
+        while True:
+            now = clock + time.monotonic() - resumed
+            while nxt < len(frames) and nxt / fps <= now:
+                if nxt not in held:
+                    admitted += mapper.add_keyframe(frames[nxt], embs[nxt].astype(np.float32))
+                nxt += 1
+            if now >= cp:
+                break
+            time.sleep(0.005)
+        mapper.stop()
+        if mapper.last_error is not None:
+            raise mapper.last_error
+        clock += time.monotonic() - resumed
+        bar.update(clock - bar.n)
+        row = {"t": round(clock, 2), "iterations": mapper.iterations,
+               "frames_fed": nxt, "keyframes": len(mapper.buffer), "admitted": admitted}
+        row.update(evaluate(mapper, eval_frames, eval_embs, channel_to_id))
+        curve.append(row)
+        tqdm.write(f"{backend:9s} t={row['t']:6.1f}s it={row['iterations']:5d} "
+                   f"kf={row['keyframes']:3d} psnr={row['psnr']:5.2f} "
+                   f"depth={row['depth_err_cm']:5.1f}cm agree={row['agreement']:.3f} "
+                   f"known={row['known_acc']:.3f}")
+        mapper.start()
+        resumed = time.monotonic()
+    mapper.stop()
+    bar.close()
+    return curve
+
+
+def at(curve: list[dict], t: float, key: str) -> float:
+    """Value at the last checkpoint not after t (the curve is sampled at checkpoints)."""
+    rows = [r for r in curve if r["t"] <= t + 1.0] or curve[:1]
+    return rows[-1][key]
+
+
+def plot(curves: dict[str, list[dict]], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    for name, curve in curves.items():
+        t = [r["t"] for r in curve]
+        for ax, key, label in zip(axes, ("psnr", "depth_err_cm", "agreement"),
+                                  ("held-out PSNR (dB)", "median depth error (cm)",
+                                   "argmax agreement with backbone")):
+            ax.plot(t, [r[key] for r in curve], "o-", label=name)
+            ax.set_xscale("log")
+            ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+            ax.set_xlabel("training wall time (s)")
+            ax.set_title(label)
+            ax.grid(True, alpha=0.3)
+    axes[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="short smoke run for a shared machine")
+    ap.add_argument("--embedding", choices=("auto", "backbone", "gt"), default="auto")
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--eval-frames", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    ap.add_argument("--skip-reference", action="store_true")
+    args = ap.parse_args()
+    fast_cps, ref_cps = FAST_CHECKPOINTS, REFERENCE_CHECKPOINTS
+    if args.quick:
+        global EVAL_STRIDE
+        fast_cps, ref_cps = [5, 10, 20, 30], [20, 40]
+        args.eval_frames = min(args.eval_frames, 4)
+        EVAL_STRIDE = 8
+    torch.set_num_threads(args.threads)
+
+    cfg = SynthConfig()
+    frames = list(tqdm(generate(args.seed, args.frames, cfg), total=args.frames,
+                       desc="synth", leave=False))
+    embs, channel_to_id, source = embeddings(frames, args.embedding)
+    held = set(range(5, len(frames), 10))
+    step = max(1, len(held) // args.eval_frames)
+    eval_set = sorted(held)[::step][:args.eval_frames]
+    base = backbone_known_acc([frames[i] for i in eval_set], [embs[i] for i in eval_set],
+                              channel_to_id)
+    print(f"{len(frames)} frames {cfg.width}x{cfg.height}, {len(held)} held out, "
+          f"{len(eval_set)} evaluated; embedding {source}; backbone known acc {base:.3f}")
+
+    curves = {"fast": run_stream("fast", frames, embs, held, fast_cps, eval_set,
+                                 channel_to_id, args.threads, cfg.fps)}
+    if not args.skip_reference:
+        curves["reference"] = run_stream("reference", frames, embs, held, ref_cps, eval_set,
+                                         channel_to_id, args.threads, cfg.fps)
+
+    fast = curves["fast"]
+    res: dict = {
+        "embedding": source, "frames": len(frames), "eval_frames": len(eval_set),
+        "eval_rays_per_frame": int(eval_rays(frames[0])[0].shape[0]),
+        "threads": args.threads, "quick": bool(args.quick),
+        "fast_psnr_120s": at(fast, 120, "psnr"),
+        "fast_depth_err_cm_120s": at(fast, 120, "depth_err_cm"),
+        "fast_agreement_120s": at(fast, 120, "agreement"),
+        "fast_known_acc_120s": at(fast, 120, "known_acc"),
+        "fast_iterations_120s": at(fast, 120, "iterations"),
+        "fast_last_t": fast[-1]["t"],
+        "backbone_known_acc": base,
+    }
+    if "reference" in curves:
+        ref = curves["reference"]
+        res.update({
+            "reference_psnr_120s": at(ref, 120, "psnr"),
+            "reference_agreement_120s": at(ref, 120, "agreement"),
+            "reference_known_acc_120s": at(ref, 120, "known_acc"),
+            "reference_final_t": ref[-1]["t"], "reference_final_psnr": ref[-1]["psnr"],
+            "reference_final_agreement": ref[-1]["agreement"],
+            "reference_iterations_final": ref[-1]["iterations"],
+        })
+        reach = [r["t"] for r in fast if r["psnr"] >= ref[-1]["psnr"]
+                 and r["agreement"] >= ref[-1]["agreement"]]
+        if reach:
+            res["speedup_to_reference_best"] = ref[-1]["t"] / reach[0]
+            res["speedup_is_lower_bound"] = reach[0] == fast[0]["t"]
+            res["fast_time_to_reference_best_s"] = reach[0]
+        else:
+            res["speedup_to_reference_best"] = None
+            res["speedup_is_lower_bound"] = False
+    res["mapper_peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+    for name, curve in curves.items():
+        for key in ("t", "iterations", "psnr", "depth_err_cm", "agreement", "known_acc"):
+            res[f"{name}_curve_{key}"] = [r[key] for r in curve]
+    res["cores"] = os.cpu_count()
+    res["commit"] = commit()
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "field.json").write_text(json.dumps(res, indent=2))
+    plot(curves, RESULTS / "field.png")
+    print()
+    for k, v in res.items():
+        if not isinstance(v, list):
+            print(f"  {k:34s} {v:.4g}" if isinstance(v, float) else f"  {k:34s} {v}")
+    print(f"wrote {RESULTS / 'field.json'} and field.png")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""Training losses of the Embedding-NeRF and the per-pixel entropy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def photometric(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_p: mean squared colour error per ray."""
+    return ((rgb - target) ** 2).sum(dim=-1).mean()
+
+
+def embedding_kl(target_logits: torch.Tensor, rendered_logits: torch.Tensor) -> torch.Tensor:
+    """L_e = KL(softmax(E) || softmax(E_hat)) averaged over rays (E from the backbone)."""
+    log_p = F.log_softmax(target_logits, dim=-1)
+    log_q = F.log_softmax(rendered_logits, dim=-1)
+    return (log_p.exp() * (log_p - log_q)).sum(dim=-1).mean()
+
+
+def depth_l1(depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean |rendered - measured| z-depth over rays with a measurement (target > 0)."""
+    valid = target > 0
+    if not bool(valid.any()):
+        return depth.sum() * 0.0
+    return (depth[valid] - target[valid]).abs().mean()
+
+
+def free_space(weights: torch.Tensor, t: torch.Tensor, target: torch.Tensor,
+               band: float) -> torch.Tensor:
+    """Weight mass in front of the measured surface (t < depth - band): should be empty."""
+    front = (t < (target[:, None] - band)) & (target[:, None] > 0)
+    return (weights * front).sum(dim=-1).pow(2).mean()
+
+
+def entropy_torch(logits: torch.Tensor) -> torch.Tensor:
+    """Natural-log entropy of softmax(logits) over the last axis, in [0, ln S]."""
+    log_p = F.log_softmax(logits, dim=-1)
+    h = -(log_p.exp() * log_p).sum(dim=-1)
+    return h.clamp(0.0, math.log(logits.shape[-1]))
+
+
+def entropy(logits: np.ndarray) -> np.ndarray:
+    """Numpy wrapper of :func:`entropy_torch`, float32."""
+    with torch.no_grad():
+        return entropy_torch(torch.from_numpy(np.asarray(logits, np.float32))).numpy()
