@@ -1,0 +1,183 @@
+"""Backbone benchmark: speed of the default net and ESANet, accuracy of the default net.
+
+Writes bench/results/backbone.json (flat figures) and bench/results/backbone.png
+(rgb | ground truth | prediction for a few held-out synthetic frames).
+
+    .venv/bin/python bench/backbone.py            # full: 5 val seeds x 30 frames
+    .venv/bin/python bench/backbone.py --quick    # fewer runs / frames (smoke)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from neurncd_ros.core import classes  # noqa: E402
+from neurncd_ros.core.backbone import backbone as bb  # noqa: E402
+from neurncd_ros.core.backbone import train  # noqa: E402
+
+RESULTS = REPO / "bench" / "results"
+VAL_SEEDS = (1000, 1001, 1002, 1003, 1004)
+
+
+def commit() -> str:
+    """Short hash of HEAD, or 'uncommitted' when there is none."""
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                             capture_output=True, text=True, timeout=10)
+        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
+            else "uncommitted"
+    except (OSError, subprocess.SubprocessError):
+        return "uncommitted"
+
+
+def median_ms(fn, runs: int, warmup: int = 3) -> float:
+    """Median wall time of ``fn()`` in milliseconds after a few warm-up calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times) * 1000
+
+
+def default_speed(backbone: bb.Backbone, runs: int) -> dict:
+    """Per-frame time of the full predict() (resize, net, numpy) and the bare net."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    depth = (0.5 + 4 * rng.random((240, 320))).astype(np.float32)
+    full = median_ms(lambda: backbone.predict(rgb, depth), runs)
+    x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
+    d = torch.from_numpy(depth)[None, None]
+
+    def net_only():
+        with torch.inference_mode():
+            backbone.net.predict_raw(x, d)
+    res = {"default_ms_320x240": full, "default_net_ms_320x240": median_ms(net_only, runs)}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # also one thread: the better choice on a busy machine
+    res["default_ms_320x240_1thread"] = median_ms(lambda: backbone.predict(rgb, depth), runs)
+    torch.set_num_threads(threads)
+    return res
+
+
+def esanet_speed(runs: int) -> dict:
+    """ESANet R34-NBt1D timings, from the ESANet benchmark helper when it exists."""
+    helper = REPO / "bench" / "backbone_esanet.py"
+    if helper.is_file():
+        spec = importlib.util.spec_from_file_location("backbone_esanet", helper)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        if hasattr(mod, "measure_esanet"):
+            res = mod.measure_esanet(repeats=runs)
+            out = {k: float(res[k]) for k in ("esanet_ms_480x640", "esanet_ms_256x320")
+                   if k in res}
+            if len(out) == 2:
+                return out
+    from neurncd_ros.core.backbone import esanet
+
+    net = esanet.ESANet(37).eval()
+    out = {}
+    for h, w in ((480, 640), (256, 320)):
+        r = torch.rand(1, 3, h, w)
+        d = torch.rand(1, 1, h, w)
+
+        def run():
+            with torch.inference_mode():
+                net(r, d)
+        out[f"esanet_ms_{h}x{w}"] = median_ms(run, runs, warmup=1)
+    return out
+
+
+def accuracy(backbone: bb.Backbone, stride: int = 1) -> tuple[dict, list]:
+    """Known-class mIoU through Backbone.predict on the held-out validation seeds.
+
+    The same frames as training validation (30 per seed, 1 s apart, cached);
+    ``stride`` > 1 keeps every stride-th frame (quick mode).
+    """
+    from tqdm import tqdm
+
+    data = train.load_scenes(VAL_SEEDS, 30, synth_cfg=train.training_synth_config(1.0),
+                             what="val", workers=2)
+    data = {k: v[::stride] for k, v in data.items()}
+    n = classes.NUM_KNOWN
+    conf = np.zeros((n, n), dtype=np.int64)
+    shown = []
+    pick = set(np.linspace(0, len(data["rgb"]) - 1, 4).astype(int).tolist())
+    for i in tqdm(range(len(data["rgb"])), desc="held-out frames"):
+        logits = backbone.predict(data["rgb"][i], data["depth"][i])
+        pred = logits.argmax(-1)
+        conf += train.confusion(pred, train.semantic_to_target(data["semantic"][i]))
+        if i in pick:
+            shown.append((data["rgb"][i], data["semantic"][i],
+                          backbone.channel_to_id[pred].astype(np.uint16)))
+    s = train.scores_from_confusion(conf)
+    out = {"default_known_miou": s["known_miou"], "default_known_pixel_accuracy":
+           s["pixel_accuracy"], "val_frames": int(len(data["rgb"]))}
+    for name, v in s["iou"].items():
+        if v is not None:
+            out[f"default_iou_{name}"] = v
+    return out, shown
+
+
+def save_png(shown: list, path: Path) -> None:
+    """Rows of rgb | ground truth | prediction (novel GT shown in its own colour)."""
+    import cv2
+
+    rows = [np.concatenate([rgb, classes.colourise(gt), classes.colourise(pred)], axis=1)
+            for rgb, gt, pred in shown]
+    img = np.concatenate(rows, axis=0)
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="few runs and frames (smoke test)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--no-esanet", action="store_true", help="skip the ESANet timings")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    runs = 20 if args.quick else 50
+    backbone = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads))
+    res: dict = {}
+    res.update(default_speed(backbone, runs))
+    acc, shown = accuracy(backbone, 5 if args.quick else 1)
+    res.update(acc)
+    if not args.no_esanet:
+        res.update(esanet_speed(3 if args.quick else 10))
+    from neurncd_ros.core.backbone import small
+    res["default_gflops_320x240"] = small.count_flops(backbone.net) / 1e9
+    res["default_parameters"] = small.count_parameters(backbone.net)
+    res["default_weights_mb"] = bb.DEFAULT_WEIGHTS.stat().st_size / 1e6
+    res["quick"] = bool(args.quick)
+    res["threads"] = args.threads
+    res["cores"] = os.cpu_count()
+    res["commit"] = commit()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "backbone.json").write_text(json.dumps(res, indent=1) + "\n")
+    save_png(shown, RESULTS / "backbone.png")
+    width = max(len(k) for k in res)
+    print(f"{'figure':<{width}}  value")
+    for k, v in res.items():
+        print(f"{k:<{width}}  {v:.2f}" if isinstance(v, float) else f"{k:<{width}}  {v}")
+    print(f"wrote {RESULTS / 'backbone.json'} and {RESULTS / 'backbone.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

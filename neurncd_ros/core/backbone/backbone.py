@@ -1,0 +1,241 @@
+"""The one `Backbone` interface: RGB-D frame in, semantic embedding out.
+
+The semantic embedding is the per-pixel pre-softmax logit vector of a
+segmentation network (the layer before the softmax, as in the paper). Two
+kinds are available:
+
+- ``default``: the project's small RGB-D net (:mod:`.small`), trained on the
+  synthetic scenes with the 9 known NYU-13 classes; S = 9 and channel k
+  predicts ``classes.KNOWN_IDS[k]``; weights ship in ``neurncd_ros/models``.
+- ``esanet``: ESANet R34-NBt1D from a public checkpoint (:mod:`.esanet`);
+  S = 40 (NYUv2) or 37 (SUN RGB-D), channel k predicts the NYU-40 class
+  k + 1, mapped to NYU-13 by ``channel_to_id``.
+
+Input contract of :meth:`Backbone.predict`: ``rgb`` (H, W, 3) uint8 RGB,
+``depth`` (H, W) float32 metres. Depth holes are 0; NaN and +-inf (the ROS
+REP 118 encodings of "no measurement") are treated as holes too; negative
+depth is an error. The frame is resized to the model's input size and the
+logits are resized back (bilinear) to H x W.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .. import classes
+from ..params import param
+
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
+DEFAULT_WEIGHTS = MODELS_DIR / "default_backbone.pt"
+"""Shipped weights of the default small model (see default_backbone.json)."""
+
+NATIVE_SIZE = {"default": (320, 240), "esanet": (640, 480)}
+"""(width, height) used when input_width/input_height are 0: the training size of
+the default net, and the 480x640 resolution ESANet's authors run at."""
+
+MIN_SIDE = 8
+"""Smallest accepted image side (pixels): anything smaller has no usable content."""
+
+
+@dataclasses.dataclass(frozen=True)
+class BackboneConfig:
+    """Which segmentation network produces the semantic embedding, and how it runs."""
+
+    kind: str = param("default", "segmentation network: the shipped small RGB-D net or "
+                      "ESANet R34-NBt1D from a checkpoint", choices=("default", "esanet"))
+    checkpoint: str = param("", "weight file; empty = shipped default weights "
+                            "(kind=esanet needs a path)")
+    esanet_dataset: str = param("nyuv2", "dataset the ESANet checkpoint was trained on: "
+                                "sets class count (40/37) and depth statistics",
+                                choices=("nyuv2", "sunrgbd"))
+    input_width: int = param(0, "model input width in pixels; 0 = native (320 default, "
+                             "640 esanet); esanet needs a multiple of 32", lo=0, hi=4096,
+                             unit="px")
+    input_height: int = param(0, "model input height in pixels; 0 = native (240 default, "
+                              "480 esanet); esanet needs a multiple of 32", lo=0, hi=4096,
+                              unit="px")
+    device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
+    num_threads: int = param(1, "torch CPU threads (0 = leave torch's setting); 1 because the "
+                             "nodes share the cores: 2 threads against a busy process took "
+                             "2.5 s per frame instead of 41 ms", lo=0, hi=256)
+
+
+def entropy(logits: np.ndarray) -> np.ndarray:
+    """Natural-log entropy of softmax(logits) over the last axis, as float32.
+
+    Computed from log-sum-exp with the maximum subtracted, so very large
+    logits neither overflow nor give NaN; the result lies in [0, ln S].
+    """
+    x = np.asarray(logits)
+    if x.ndim < 1 or x.shape[-1] < 1:
+        raise ValueError(f"logits need a non-empty last (channel) axis, got shape {x.shape}")
+    if not np.issubdtype(x.dtype, np.floating):
+        raise ValueError(f"logits must be floating point, got {x.dtype}")
+    x = x.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(x)):
+        raise ValueError("logits contain NaN or inf")
+    z = x - x.max(axis=-1, keepdims=True)
+    lse = np.log(np.exp(z).sum(axis=-1, keepdims=True))
+    p = np.exp(z - lse)
+    h = lse[..., 0] - (p * z).sum(axis=-1)
+    return np.clip(h, 0.0, np.log(x.shape[-1])).astype(np.float32)
+
+
+def check_rgbd(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Validate one RGB-D pair; return depth with NaN/inf replaced by 0 (hole)."""
+    if not isinstance(rgb, np.ndarray) or not isinstance(depth, np.ndarray):
+        raise ValueError("rgb and depth must be numpy arrays, got "
+                         f"{type(rgb).__name__} and {type(depth).__name__}")
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if depth.dtype != np.float32 or depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W) float32 metres, got {depth.shape} {depth.dtype}")
+    if depth.shape != rgb.shape[:2]:
+        raise ValueError(f"depth {depth.shape} and rgb {rgb.shape[:2]} differ in size")
+    if min(depth.shape) < MIN_SIDE:
+        raise ValueError(f"image {depth.shape} is smaller than {MIN_SIDE} pixels on a side")
+    finite = np.isfinite(depth)
+    if not finite.all():
+        depth = np.where(finite, depth, np.float32(0.0))
+    if (depth < 0).any():
+        raise ValueError(f"depth must be >= 0 metres (0 = hole), min is {float(depth.min())}")
+    return depth
+
+
+class Backbone:
+    """A loaded segmentation network that turns RGB-D frames into embeddings.
+
+    ``channels`` is S; ``channel_to_id`` (uint16, length S) is the NYU-13 id
+    each channel predicts (0 where a channel has no NYU-13 class).
+    """
+
+    def __init__(self, net: torch.nn.Module, kind: str, channel_to_id: np.ndarray,
+                 input_size: tuple[int, int], device: str, preprocess) -> None:
+        self.net = net.eval()
+        self.kind = kind
+        self.channel_to_id = np.asarray(channel_to_id, dtype=np.uint16)
+        self.channels = int(len(self.channel_to_id))
+        self.input_size = input_size  # (width, height)
+        self.device = torch.device(device)
+        self._preprocess = preprocess
+
+    def predict(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """One frame -> (H, W, S) float32 logits at the frame's own size."""
+        return self.predict_batch([rgb], [depth])[0]
+
+    def predict_batch(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
+                      ) -> list[np.ndarray]:
+        """Several frames (any sizes) -> list of (H_i, W_i, S) float32 logits.
+
+        Frames are resized to the model input size, run as one batch, and the
+        logits resized back to each frame's size.
+        """
+        if len(rgbs) != len(depths):
+            raise ValueError(f"got {len(rgbs)} rgb images but {len(depths)} depth images")
+        if not rgbs:
+            return []
+        w, h = self.input_size
+        rgb_in, depth_in, sizes = [], [], []
+        for rgb, depth in zip(rgbs, depths):
+            depth = check_rgbd(rgb, depth)
+            sizes.append(depth.shape)
+            if depth.shape != (h, w):
+                rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
+                # Nearest keeps holes as holes instead of smearing 0 into real depth.
+                depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+            rgb_in.append(rgb)
+            depth_in.append(depth)
+        rgb_t = torch.from_numpy(np.stack(rgb_in)).permute(0, 3, 1, 2).float()
+        depth_t = torch.from_numpy(np.stack(depth_in))[:, None]
+        with torch.inference_mode():
+            x_rgb, x_depth = self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
+            logits = self.net(x_rgb, x_depth)
+            if isinstance(logits, (tuple, list)):  # some nets return side outputs
+                logits = logits[0]
+            out = []
+            for i, (hh, ww) in enumerate(sizes):
+                li = logits[i: i + 1]
+                if (hh, ww) != tuple(li.shape[-2:]):
+                    li = F.interpolate(li, size=(hh, ww), mode="bilinear", align_corners=False)
+                out.append(np.ascontiguousarray(
+                    li[0].permute(1, 2, 0).float().cpu().numpy(), dtype=np.float32))
+        if self.channels != out[0].shape[-1]:
+            raise RuntimeError(f"network returned {out[0].shape[-1]} channels, "
+                               f"expected {self.channels}")
+        return out
+
+
+def _input_size(cfg: BackboneConfig) -> tuple[int, int]:
+    """(width, height) the network runs at, with 0 meaning the kind's native size."""
+    nw, nh = NATIVE_SIZE[cfg.kind]
+    w, h = cfg.input_width or nw, cfg.input_height or nh
+    if w < MIN_SIDE or h < MIN_SIDE:
+        raise ValueError(f"input size {w}x{h} is below {MIN_SIDE} pixels on a side")
+    if cfg.kind == "esanet" and (w % 32 or h % 32):
+        raise ValueError(f"esanet input_width/input_height must be multiples of 32 "
+                         f"(its decoder joins stride-32 features), got {w}x{h}; "
+                         f"use 640x480 or 320x256")
+    return w, h
+
+
+def _load_default(cfg: BackboneConfig) -> Backbone:
+    from . import small
+
+    path = Path(cfg.checkpoint) if cfg.checkpoint else DEFAULT_WEIGHTS
+    if not path.is_file():
+        raise ValueError(f"backbone checkpoint {path} does not exist"
+                         + ("" if cfg.checkpoint else " (shipped default weights missing; "
+                            "run `neurncd train-backbone`)"))
+    net = small.load_weights(str(path), device=cfg.device)
+    return Backbone(net, "default", classes.CHANNEL_TO_ID.copy(), _input_size(cfg), cfg.device,
+                    small.prepare_inputs)
+
+
+def esanet_channel_to_id(dataset: str) -> np.ndarray:
+    """NYU-13 id of each ESANet output channel: NYU-40 class k + 1 mapped to NYU-13.
+
+    SUN RGB-D's 37 classes are the first 37 NYU-40 classes in the same order.
+    """
+    n = {"nyuv2": 40, "sunrgbd": 37}.get(dataset)
+    if n is None:
+        raise ValueError(f"esanet_dataset must be 'nyuv2' or 'sunrgbd', got {dataset!r}")
+    return classes.NYU40_TO_NYU13[1: n + 1].astype(np.uint16)
+
+
+def _load_esanet(cfg: BackboneConfig) -> Backbone:
+    from . import esanet  # lazy: the R34 model is large and optional
+
+    if not cfg.checkpoint:
+        raise ValueError("kind=esanet needs checkpoint=<path to an ESANet R34-NBt1D .pth>; "
+                         "no ESANet weights ship with the package")
+    if not Path(cfg.checkpoint).is_file():
+        raise ValueError(f"ESANet checkpoint {cfg.checkpoint} does not exist")
+    channel_to_id = esanet_channel_to_id(cfg.esanet_dataset)
+    net = esanet.load_esanet_checkpoint(cfg.checkpoint, num_classes=len(channel_to_id),
+                                        device=cfg.device)
+    dataset = cfg.esanet_dataset
+
+    def preprocess(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return esanet.preprocess_rgb(rgb), esanet.preprocess_depth(depth, dataset)
+
+    return Backbone(net, "esanet", channel_to_id, _input_size(cfg), cfg.device, preprocess)
+
+
+def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:
+    """Build the configured backbone on its device, in eval mode, ready to predict."""
+    cfg = cfg or BackboneConfig()
+    if cfg.kind not in NATIVE_SIZE:
+        raise ValueError(f"backbone kind must be 'default' or 'esanet', got {cfg.kind!r}")
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        raise ValueError("backbone device 'cuda' requested but torch sees no CUDA device")
+    if cfg.num_threads > 0 and cfg.device == "cpu":
+        torch.set_num_threads(cfg.num_threads)
+    _input_size(cfg)  # fail early on a bad size
+    return _load_esanet(cfg) if cfg.kind == "esanet" else _load_default(cfg)

@@ -1,0 +1,238 @@
+"""The default small RGB-D segmentation network (the project's own ESANet-lite).
+
+Why a small net: no public weights can be downloaded here, so the project
+trains its own model on its synthetic scenes, and it must run online on a
+2-core CPU (budget 40 ms per 320x240 frame). The layout follows ESANet in
+miniature: two light encoders (RGB and depth) built from factorised
+NonBottleneck-1D blocks, depth fused into RGB after every stage with
+squeeze-and-excitation ("SE-add"), a pyramid pooling context module, and a
+decoder with skip connections. The output has S = 9 channels, channel k being
+the pre-softmax logit (the semantic embedding) of NYU-13 id
+``classes.KNOWN_IDS[k]``.
+
+Inputs are produced by :func:`prepare_inputs`: RGB normalised with ImageNet
+statistics, and depth as two channels (normalised metric depth, 0 at holes; a
+validity mask), so the net is told where the sensor gave no measurement.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .. import classes
+
+RGB_MEAN = (0.485, 0.456, 0.406)
+RGB_STD = (0.229, 0.224, 0.225)
+DEPTH_MEAN_M = 2.8
+"""Typical indoor depth (m): centre of the depth normalisation."""
+DEPTH_STD_M = 1.4
+"""Spread of indoor depth (m): scale of the depth normalisation."""
+
+ARCH_VERSION = 1
+"""Bumped whenever the layout changes, so stale weights fail loudly."""
+
+
+def prepare_inputs(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalise a batch: rgb (B, 3, H, W) in [0, 255], depth (B, 1, H, W) metres, 0 = hole.
+
+    Returns the (B, 3, H, W) RGB tensor and the (B, 2, H, W) depth tensor
+    (normalised depth zeroed at holes, validity mask).
+    """
+    mean = rgb.new_tensor(RGB_MEAN).view(1, 3, 1, 1) * 255.0
+    std = rgb.new_tensor(RGB_STD).view(1, 3, 1, 1) * 255.0
+    x_rgb = (rgb - mean) / std
+    valid = (depth > 0).to(depth.dtype)
+    x_depth = torch.cat([(depth - DEPTH_MEAN_M) / DEPTH_STD_M * valid, valid], dim=1)
+    return x_rgb, x_depth
+
+
+class ConvBNReLU(nn.Sequential):
+    """3x3 (or k x k) convolution, batch norm, ReLU: the stem and downsampling unit."""
+
+    def __init__(self, cin: int, cout: int, k: int = 3, stride: int = 1) -> None:
+        super().__init__(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False),
+                         nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
+
+
+class NonBottleneck1D(nn.Module):
+    """ERFNet/ESANet residual block with 3x1 and 1x3 factorised convolutions.
+
+    Factorising a 3x3 kernel into 3x1 + 1x3 keeps the receptive field at 2/3
+    of the cost; the second pair is dilated to grow context cheaply.
+    """
+
+    def __init__(self, ch: int, dilation: int = 1) -> None:
+        super().__init__()
+        d = dilation
+        self.conv3x1_1 = nn.Conv2d(ch, ch, (3, 1), padding=(1, 0))
+        self.conv1x3_1 = nn.Conv2d(ch, ch, (1, 3), padding=(0, 1), bias=False)
+        self.bn1 = nn.BatchNorm2d(ch)
+        self.conv3x1_2 = nn.Conv2d(ch, ch, (3, 1), padding=(d, 0), dilation=(d, 1))
+        self.conv1x3_2 = nn.Conv2d(ch, ch, (1, 3), padding=(0, d), dilation=(1, d), bias=False)
+        self.bn2 = nn.BatchNorm2d(ch)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = F.relu(self.conv3x1_1(x), inplace=True)
+        y = F.relu(self.bn1(self.conv1x3_1(y)), inplace=True)
+        y = F.relu(self.conv3x1_2(y), inplace=True)
+        y = self.bn2(self.conv1x3_2(y))
+        return F.relu(y + x, inplace=True)
+
+
+class SqueezeExcite(nn.Module):
+    """Channel attention: global pooling -> bottleneck MLP -> sigmoid gate."""
+
+    def __init__(self, ch: int, reduction: int = 4) -> None:
+        super().__init__()
+        hidden = max(ch // reduction, 4)
+        self.fc1 = nn.Conv2d(ch, hidden, 1)
+        self.fc2 = nn.Conv2d(hidden, ch, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        w = F.adaptive_avg_pool2d(x, 1)
+        w = torch.sigmoid(self.fc2(F.relu(self.fc1(w), inplace=True)))
+        return x * w
+
+
+class SEFusion(nn.Module):
+    """ESANet's SE-add: re-weight each modality's channels, then add depth into RGB."""
+
+    def __init__(self, ch: int) -> None:
+        super().__init__()
+        self.se_rgb = SqueezeExcite(ch)
+        self.se_depth = SqueezeExcite(ch)
+
+    def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        return self.se_rgb(rgb) + self.se_depth(depth)
+
+
+def _stage(cin: int, cout: int, dilations: tuple[int, ...]) -> nn.Sequential:
+    """Stride-2 downsampling followed by NonBottleneck-1D blocks."""
+    return nn.Sequential(ConvBNReLU(cin, cout, 3, 2), *[NonBottleneck1D(cout, d) for d in dilations])
+
+
+class PyramidPooling(nn.Module):
+    """PSPNet-style context: pool to several grids, project, upsample, concatenate."""
+
+    def __init__(self, ch: int, bins: tuple[int, ...] = (1, 3, 5), branch: int = 32) -> None:
+        super().__init__()
+        self.bins = bins
+        self.branches = nn.ModuleList(
+            [nn.Sequential(nn.Conv2d(ch, branch, 1, bias=False), nn.BatchNorm2d(branch),
+                           nn.ReLU(inplace=True)) for _ in bins])
+        self.project = ConvBNReLU(ch + branch * len(bins), ch, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        size = x.shape[-2:]
+        feats = [x]
+        for b, branch in zip(self.bins, self.branches):
+            y = branch(F.adaptive_avg_pool2d(x, b))
+            feats.append(F.interpolate(y, size=size, mode="bilinear", align_corners=False))
+        return self.project(torch.cat(feats, dim=1))
+
+
+class DecoderStage(nn.Module):
+    """Upsample x2, reduce channels, add the fused encoder skip, refine with one block."""
+
+    def __init__(self, cin: int, cskip: int, cout: int) -> None:
+        super().__init__()
+        self.reduce = ConvBNReLU(cin, cout, 3)
+        self.skip = nn.Conv2d(cskip, cout, 1, bias=False)
+        self.block = NonBottleneck1D(cout)
+
+    def forward(self, x: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        x = F.interpolate(self.reduce(x), size=skip.shape[-2:], mode="bilinear",
+                          align_corners=False)
+        return self.block(x + self.skip(skip))
+
+
+class SmallRGBDNet(nn.Module):
+    """Two-branch RGB-D encoder with SE fusion, PPM context and a skip decoder.
+
+    Resolutions for a 240x320 input: stem 1/2 (120x160), stages 1/4, 1/8, 1/16,
+    decoder back to 1/2, logits bilinearly upsampled to the input size. Any
+    input size works (sizes are matched by interpolation, no divisibility rule).
+    """
+
+    def __init__(self, num_classes: int = classes.NUM_KNOWN,
+                 widths: tuple[int, int, int, int] = (16, 32, 64, 128)) -> None:
+        super().__init__()
+        c0, c1, c2, c3 = widths
+        self.num_classes = num_classes
+        self.widths = tuple(widths)
+        self.rgb_stem = ConvBNReLU(3, c0, 3, 2)
+        self.depth_stem = ConvBNReLU(2, c0, 3, 2)
+        self.rgb_stages = nn.ModuleList([_stage(c0, c1, (1,)), _stage(c1, c2, (1, 2)),
+                                         _stage(c2, c3, (2, 4))])
+        self.depth_stages = nn.ModuleList([_stage(c0, c1, ()), _stage(c1, c2, (1,)),
+                                           _stage(c2, c3, (2,))])
+        self.fusions = nn.ModuleList([SEFusion(c) for c in (c0, c1, c2, c3)])
+        self.context = PyramidPooling(c3)
+        self.decoder = nn.ModuleList([DecoderStage(c3, c2, c2), DecoderStage(c2, c1, c1),
+                                      DecoderStage(c1, c0, c0)])
+        self.classifier = nn.Conv2d(c0, num_classes, 1)
+
+    def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor) -> torch.Tensor:
+        """Normalised inputs (see :func:`prepare_inputs`) -> (B, S, H, W) logits."""
+        size = x_rgb.shape[-2:]
+        r = self.rgb_stem(x_rgb)
+        d = self.depth_stem(x_depth)
+        r = self.fusions[0](r, d)
+        skips = [r]
+        for i, (rs, ds) in enumerate(zip(self.rgb_stages, self.depth_stages)):
+            r, d = rs(r), ds(d)
+            r = self.fusions[i + 1](r, d)
+            skips.append(r)
+        x = self.context(skips[-1])
+        for dec, skip in zip(self.decoder, reversed(skips[:-1])):
+            x = dec(x, skip)
+        logits = self.classifier(x)
+        return F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
+
+    def predict_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Un-normalised batch (rgb 0..255, depth metres) -> (B, S, H, W) logits."""
+        return self(*prepare_inputs(rgb, depth))
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable scalars (the weight file holds this many floats)."""
+    return sum(p.numel() for p in model.parameters())
+
+
+def count_flops(model: nn.Module, height: int = 240, width: int = 320) -> int:
+    """Floating-point operations (2 per multiply-add) of one forward pass at batch 1."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    x_rgb = torch.zeros(1, 3, height, width)
+    x_depth = torch.zeros(1, 2, height, width)
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model.eval()(x_rgb, x_depth)
+    return int(counter.get_total_flops())
+
+
+def save_weights(model: SmallRGBDNet, path: str, extra: dict | None = None,
+                 half: bool = True) -> None:
+    """Store the weights (fp16 by default, halves the file) with the layout they fit."""
+    state = {k: (v.half() if half and v.is_floating_point() else v)
+             for k, v in model.state_dict().items()}
+    torch.save({"arch": "SmallRGBDNet", "arch_version": ARCH_VERSION,
+                "num_classes": model.num_classes, "widths": list(model.widths),
+                "channel_to_id": np.asarray(classes.CHANNEL_TO_ID).tolist(),
+                "state_dict": state, "extra": extra or {}}, path)
+
+
+def load_weights(path: str, device: str = "cpu") -> SmallRGBDNet:
+    """Rebuild the net from a file written by :func:`save_weights` (eval mode, fp32)."""
+    blob = torch.load(path, map_location=device, weights_only=True)
+    if not isinstance(blob, dict) or blob.get("arch") != "SmallRGBDNet":
+        raise ValueError(f"{path}: not a SmallRGBDNet weight file (no 'arch' = 'SmallRGBDNet')")
+    if blob.get("arch_version") != ARCH_VERSION:
+        raise ValueError(f"{path}: weights are for layout version {blob.get('arch_version')}, "
+                         f"this code builds version {ARCH_VERSION}; retrain the backbone")
+    model = SmallRGBDNet(int(blob["num_classes"]), tuple(blob["widths"]))
+    state = {k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()}
+    model.load_state_dict(state, strict=True)
+    return model.to(device).eval()

@@ -1,0 +1,250 @@
+"""Backbone interface, the shipped default weights, entropy, training pieces."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neurncd_ros.core import classes
+from neurncd_ros.core.backbone import backbone as bb
+from neurncd_ros.core.backbone import small, train
+from neurncd_ros.core.params import ConfigError, build
+
+HELD_OUT_SEED = 1007
+"""A synthetic scene seed used neither for training (0-39) nor validation (1000-1004)."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
+@pytest.fixture(scope="module")
+def default_backbone() -> bb.Backbone:
+    if not bb.DEFAULT_WEIGHTS.is_file():
+        pytest.fail(f"shipped weights {bb.DEFAULT_WEIGHTS} missing")
+    return bb.load_backbone(bb.BackboneConfig(num_threads=0))
+
+
+@pytest.fixture(scope="module")
+def held_out_frames():
+    synth = pytest.importorskip("neurncd_ros.core.data.synth")
+    return list(synth.generate(HELD_OUT_SEED, 2, synth.SynthConfig()))
+
+
+def _rgbd(h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    depth = (0.5 + 4 * rng.random((h, w))).astype(np.float32)
+    depth[:5, :5] = 0.0
+    return rgb, depth
+
+
+# ----------------------------------------------------------------------------- shipped model
+def test_default_backbone_shape_and_dtype(default_backbone):
+    assert default_backbone.channels == 9
+    assert default_backbone.channel_to_id.dtype == np.uint16
+    assert default_backbone.channel_to_id.tolist() == list(classes.KNOWN_IDS)
+    for h, w in ((240, 320), (150, 200)):
+        rgb, depth = _rgbd(h, w)
+        out = default_backbone.predict(rgb, depth)
+        assert out.shape == (h, w, 9) and out.dtype == np.float32
+        assert np.isfinite(out).all()
+
+
+def test_predict_batch_matches_single(default_backbone):
+    a = _rgbd(240, 320, 1)
+    b = _rgbd(150, 200, 2)
+    batch = default_backbone.predict_batch([a[0], b[0]], [a[1], b[1]])
+    assert [x.shape for x in batch] == [(240, 320, 9), (150, 200, 9)]
+    np.testing.assert_allclose(batch[1], default_backbone.predict(*b), atol=1e-3)
+    assert default_backbone.predict_batch([], []) == []
+
+
+def test_shipped_weights_segment_held_out_scene(default_backbone, held_out_frames):
+    """The shipped weights must really segment a synthetic scene they never saw."""
+    correct = total = 0
+    for fr in held_out_frames:
+        logits = default_backbone.predict(fr.rgb, fr.depth)
+        pred_id = default_backbone.channel_to_id[logits.argmax(-1)]
+        known = np.isin(fr.semantic, classes.KNOWN_IDS)
+        correct += int((pred_id[known] == fr.semantic[known]).sum())
+        total += int(known.sum())
+    assert total > 1000, "held-out frames show almost no known-class pixels"
+    acc = correct / total
+    assert acc > 0.70, f"pixel accuracy on known pixels {acc:.3f} (chance ~ 0.11)"
+
+
+def test_nan_depth_is_a_hole(default_backbone):
+    rgb, depth = _rgbd(120, 160, 3)
+    holes = depth.copy()
+    holes[40:60, 50:90] = 0.0
+    nans = depth.copy()
+    nans[40:60, 50:90] = np.nan
+    nans[0, 100] = np.inf
+    holes[0, 100] = 0.0
+    np.testing.assert_allclose(default_backbone.predict(rgb, nans),
+                               default_backbone.predict(rgb, holes), atol=1e-4)
+
+
+@pytest.mark.parametrize("rgb, depth, match", [
+    (np.zeros((60, 80, 3), np.float32), np.ones((60, 80), np.float32), "uint8"),
+    (np.zeros((60, 80), np.uint8), np.ones((60, 80), np.float32), r"\(H, W, 3\)"),
+    (np.zeros((60, 80, 3), np.uint8), np.ones((60, 80), np.uint16), "float32"),
+    (np.zeros((60, 80, 3), np.uint8), np.ones((60, 81), np.float32), "differ"),
+    (np.zeros((60, 80, 3), np.uint8), -np.ones((60, 80), np.float32), ">= 0"),
+    (np.zeros((4, 80, 3), np.uint8), np.ones((4, 80), np.float32), "smaller"),
+    ([[0]], np.ones((60, 80), np.float32), "numpy"),
+])
+def test_bad_inputs_raise(default_backbone, rgb, depth, match):
+    with pytest.raises(ValueError, match=match):
+        default_backbone.predict(rgb, depth)
+
+
+def test_batch_length_mismatch(default_backbone):
+    rgb, depth = _rgbd(60, 80)
+    with pytest.raises(ValueError, match="rgb images"):
+        default_backbone.predict_batch([rgb, rgb], [depth])
+
+
+# ----------------------------------------------------------------------------- config
+def test_config_validation(tmp_path):
+    with pytest.raises(ConfigError, match="kind"):
+        build(bb.BackboneConfig, {"kind": "resnet"})
+    with pytest.raises(ConfigError, match="input_width"):
+        build(bb.BackboneConfig, {"input_width": -3})
+    with pytest.raises(ValueError, match="does not exist"):
+        bb.load_backbone(bb.BackboneConfig(checkpoint=str(tmp_path / "missing.pt")))
+    with pytest.raises(ValueError, match="needs checkpoint"):
+        bb.load_backbone(bb.BackboneConfig(kind="esanet"))
+    with pytest.raises(ValueError, match="multiples of 32"):
+        bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint="x",
+                                           input_width=320, input_height=240))
+    bad = tmp_path / "bad.pt"
+    torch.save({"weights": 1}, bad)
+    with pytest.raises(ValueError, match="SmallRGBDNet"):
+        bb.load_backbone(bb.BackboneConfig(checkpoint=str(bad)))
+
+
+def test_esanet_channel_to_id():
+    nyu = bb.esanet_channel_to_id("nyuv2")
+    sun = bb.esanet_channel_to_id("sunrgbd")
+    assert len(nyu) == 40 and len(sun) == 37 and nyu.dtype == np.uint16
+    np.testing.assert_array_equal(sun, nyu[:37])
+    # NYU-40: 1 wall, 2 floor, 22 ceiling, 25 television.
+    assert nyu[0] == classes.CLASS_ID["wall"] and nyu[1] == classes.CLASS_ID["floor"]
+    assert nyu[21] == classes.CLASS_ID["ceiling"] and nyu[24] == classes.CLASS_ID["tv"]
+
+
+# ----------------------------------------------------------------------------- entropy
+def test_entropy_matches_hand_computation():
+    logits = np.array([[[0.0, 0.0, 0.0], [2.0, 1.0, -1.0]]], dtype=np.float32)
+    h = bb.entropy(logits)
+    p = np.exp([2.0, 1.0, -1.0]) / np.exp([2.0, 1.0, -1.0]).sum()
+    assert h.shape == (1, 2) and h.dtype == np.float32
+    assert h[0, 0] == pytest.approx(math.log(3), abs=1e-6)
+    assert h[0, 1] == pytest.approx(float(-(p * np.log(p)).sum()), abs=1e-6)
+
+
+def test_entropy_range_and_stability():
+    rng = np.random.default_rng(0)
+    logits = (rng.normal(size=(30, 40, 9)) * 50).astype(np.float32)
+    logits[0, 0] = 1e30  # all equal, huge: uniform
+    logits[0, 1] = [1e30] + [-1e30] * 8  # one-hot
+    h = bb.entropy(logits)
+    assert np.isfinite(h).all()
+    assert h.min() >= 0.0 and h.max() <= math.log(9) + 1e-6
+    assert h[0, 0] == pytest.approx(math.log(9), abs=1e-5)
+    assert h[0, 1] == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(ValueError, match="NaN"):
+        bb.entropy(np.array([[np.nan, 1.0]], np.float32))
+
+
+# ----------------------------------------------------------------------------- training pieces
+def test_targets_ignore_novel_and_void():
+    sem = np.arange(14, dtype=np.uint16)[None]
+    tgt = train.semantic_to_target(sem)[0]
+    for cid in range(14):
+        if cid in classes.KNOWN_IDS:
+            assert tgt[cid] == classes.ID_TO_CHANNEL[cid]
+        else:
+            assert tgt[cid] == train.IGNORE
+
+
+def test_miou_definition():
+    # 2 known classes on 4 known pixels; novel pixel (IGNORE) must not count.
+    target = np.array([0, 0, 1, 1, train.IGNORE], np.uint8)
+    pred = np.array([0, 1, 1, 1, 0], np.int64)
+    s = train.scores_from_confusion(train.confusion(pred, target))
+    # IoU(0) = 1/2, IoU(1) = 2/3, other classes absent from GT are excluded.
+    assert s["known_miou"] == pytest.approx((0.5 + 2 / 3) / 2 * 100)
+    assert s["pixel_accuracy"] == pytest.approx(0.75)
+
+
+def test_augment_keeps_labels_aligned():
+    gen = torch.Generator().manual_seed(0)
+    # Image whose colour encodes the label: the warp must move both together.
+    lab = torch.zeros(2, 48, 64, dtype=torch.long)
+    lab[:, :, 32:] = 1
+    rgb = (lab[:, None].float() * 200).repeat(1, 3, 1, 1)
+    depth = torch.ones(2, 1, 48, 64)
+    r, d, t = train.augment(rgb, depth, lab, gen, jitter=0.0)
+    inside = t != train.IGNORE
+    assert inside.float().mean() > 0.5
+    bright = r.mean(1) > 100
+    agree = (bright == (t == 1))[inside].float().mean()
+    assert agree > 0.95
+    assert ((d[:, 0] == 0) == ~inside).float().mean() > 0.95
+    r, d, t = train.augment(rgb, depth, lab, gen, crop=(32, 40))
+    assert r.shape == (2, 3, 32, 40) and d.shape == (2, 1, 32, 40) and t.shape == (2, 32, 40)
+    inside = t != train.IGNORE
+    assert ((r.mean(1) > 100) == (t == 1))[inside].float().mean() > 0.95
+
+
+def test_train_loop_learns_a_toy_task(tmp_path):
+    """A few steps on a toy RGB-D task lower the loss and write weights + record."""
+    rng = np.random.default_rng(0)
+
+    def toy(n):
+        sem = np.full((n, 48, 64), classes.CLASS_ID["wall"], np.uint16)
+        sem[:, 24:] = classes.CLASS_ID["floor"]
+        sem[:, :4] = classes.CLASS_ID["ceiling"]  # novel: ignored
+        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).astype(np.uint8)
+        rgb = (rgb + rng.integers(0, 30, rgb.shape)).astype(np.uint8)
+        depth = np.where(sem == classes.CLASS_ID["floor"], 1.5, 3.0).astype(np.float32)
+        return {"rgb": rgb, "depth": depth, "semantic": sem}
+
+    rec = train.train_backbone(tmp_path / "w.pt", [0], [1], epochs=6, batch_size=4,
+                               data=(toy(16), toy(4)), num_threads=1, progress=False,
+                               command="test", crop=None)
+    assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
+    assert rec["val_known_miou"] > 60
+    assert (tmp_path / "w.json").is_file()
+    net = small.load_weights(str(tmp_path / "w.pt"))
+    assert isinstance(net, small.SmallRGBDNet)
+    with pytest.raises(ValueError, match="overlap"):
+        train.train_backbone(tmp_path / "x.pt", [0, 1], [1], data=(toy(4), toy(4)),
+                             progress=False)
+
+
+# ----------------------------------------------------------------------------- esanet
+def test_esanet_checkpoint_loads_through_backbone(tmp_path):
+    esanet = pytest.importorskip("neurncd_ros.core.backbone.esanet")
+    torch.manual_seed(0)
+    net = esanet.ESANet(37)
+    path = tmp_path / "ckpt_sunrgbd.pth"
+    torch.save({"state_dict": net.state_dict(), "epoch": 0}, path)
+    del net
+    b = bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint=str(path),
+                                           esanet_dataset="sunrgbd", input_width=320,
+                                           input_height=256, num_threads=0))
+    assert b.channels == 37
+    rgb, depth = _rgbd(240, 320)
+    out = b.predict(rgb, depth)
+    assert out.shape == (240, 320, 37) and out.dtype == np.float32 and np.isfinite(out).all()
