@@ -249,7 +249,10 @@ def to_yaml(cfg: Config, with_docs: bool = True) -> str:
                 lines.append(f"      # {spec.doc} ({spec.allowed()})")
             dumped = yaml.safe_dump({spec.name: values[spec.name]}, default_flow_style=True,
                                     width=10_000).strip()
-            lines.append(f"      {dumped[1:-1]}")
+            # ROS cannot type an empty list from a parameter file ("not set"), so an
+            # empty default is written commented out: absent means the default.
+            empty = isinstance(values[spec.name], list) and not values[spec.name]
+            lines.append(f"      {'# ' if empty else ''}{dumped[1:-1]}")
     return "\n".join(lines) + "\n"
 
 

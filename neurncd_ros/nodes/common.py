@@ -92,15 +92,17 @@ def declare_config(node: Any) -> config_mod.Config:
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown parameter; see `neurncd params` for the "
                           "list of parameters")
-    from rclpy.parameter import Parameter
+    from rcl_interfaces.msg import ParameterDescriptor
 
     values = {}
     for key, default in defaults.items():
         if node.has_parameter(key):
             value = node.get_parameter(key).value
         elif isinstance(default, list) and not default:
-            # An empty list has no element type ROS could infer: declare it typed.
-            value = node.declare_parameter(key, Parameter.Type.DOUBLE_ARRAY).value
+            # An empty list has no element type ROS could infer (a parameter file's
+            # `[]` arrives as "not set"): declare it dynamically typed, unset = default.
+            value = node.declare_parameter(
+                key, None, ParameterDescriptor(dynamic_typing=True)).value
         else:
             value = node.declare_parameter(key, _ros_value(default)).value
         values[key] = default if value is None else value
@@ -132,6 +134,10 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             executor.spin_once(timeout_sec=0.2)
     except ConfigError as err:
         print(f"{name}: configuration error: {err}", file=sys.stderr)
+        return 2
+    except ValueError as err:  # rclpy refusing a parameter override (e.g. `key: []`)
+        print(f"{name}: parameter error: {err} (an empty list in a parameter file has no "
+              "type in ROS: leave the key out to get its default)", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from .. import msgconv
+from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
 from ..core import classes
 from .common import (StampMatcher, declare_config, header_ns, image_msg, latched_qos,
                      output_qos, run_node, sensor_qos)
@@ -36,7 +37,6 @@ def make_node():
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
 
-    from ..core.discovery.labeller import Discoverer
 
     class DiscoveryNode(Node):
         def __init__(self) -> None:

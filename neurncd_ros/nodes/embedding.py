@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from .. import msgconv
+from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
 from .common import (StampMatcher, declare_config, header_ns, image_msg, output_qos,
                      run_node, sensor_qos)
 
@@ -24,7 +25,6 @@ def make_node():
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
 
-    from ..core.backbone.backbone import load_backbone
 
     class EmbeddingNode(Node):
         def __init__(self) -> None:

@@ -14,6 +14,7 @@ import threading
 import cv2
 
 from .. import msgconv
+from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
 from ..core.frame import Frame
 from .common import (StampMatcher, declare_config, header_ns, image_msg, output_qos,
                      run_node, sensor_qos)
@@ -29,7 +30,6 @@ def make_node():
     from sensor_msgs.msg import CameraInfo, Image
     from std_srvs.srv import Trigger
 
-    from ..core.field.mapper import Mapper
 
     class MapperNode(Node):
         def __init__(self) -> None:
