@@ -14,7 +14,6 @@ import importlib.util
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -33,15 +32,7 @@ RESULTS = REPO / "bench" / "results"
 VAL_SEEDS = (1000, 1001, 1002, 1003, 1004)
 
 
-def commit() -> str:
-    """Short hash of HEAD, or 'uncommitted' when there is none."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
-            else "uncommitted"
-    except (OSError, subprocess.SubprocessError):
-        return "uncommitted"
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 
 def median_ms(fn, runs: int, warmup: int = 3) -> float:

@@ -60,15 +60,7 @@ TRAIN_SEEDS = (0, 1, 2, 3)
 TEST_SEEDS = (20, 21)
 
 
-def commit() -> str:
-    """Short hash of HEAD, or 'uncommitted' when there is none."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
-            else "uncommitted"
-    except (OSError, subprocess.SubprocessError):
-        return "uncommitted"
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 
 def frames_of(seed: int, frames: int, step: int) -> list:

@@ -25,7 +25,6 @@ import json
 import math
 import os
 import resource
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -47,15 +46,7 @@ FAST_CHECKPOINTS = [5, 10, 20, 40, 60, 90, 120]
 REFERENCE_CHECKPOINTS = [60, 120, 300, 600]
 
 
-def commit() -> str:
-    """Short hash of HEAD, or 'uncommitted' when there is none."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
-            else "uncommitted"
-    except (OSError, subprocess.SubprocessError):
-        return "uncommitted"
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 
 def gt_embedding(semantic: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -13,7 +13,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,15 +30,7 @@ from neurncd_ros.core.data.synth import SynthConfig, frames_at, generate  # noqa
 RESULTS = REPO / "bench" / "results"
 
 
-def commit() -> str:
-    """Short hash of HEAD, or 'uncommitted' when there is none."""
-    try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
-            else "uncommitted"
-    except (OSError, subprocess.SubprocessError):
-        return "uncommitted"
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 
 def time_generation(frames: int, runs: int, seed: int = 0) -> dict:

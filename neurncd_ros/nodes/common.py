@@ -240,3 +240,32 @@ class StampMatcher:
             self.dropped += i
             del queue[: i + 1]
         return stamp_ns, group
+
+
+class PairedFrames:
+    """Mixin of the nodes that pair topics by stamp and need the camera intrinsics.
+
+    The node sets ``self.matcher``, ``self.topics``, ``self.throttle`` and
+    implements ``on_frame(stamp_ns, group)``; a ValueError from it skips that
+    frame with a throttled warning (counted in ``self.skipped``), never the node.
+    """
+
+    intrinsics = None
+    skipped = 0
+
+    def on_info(self, msg) -> None:
+        try:
+            self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
+        except ValueError as err:
+            self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
+
+    def offer(self, slot: str, msg) -> None:
+        match = self.matcher.add(slot, header_ns(msg), msg)
+        if match is None:
+            return
+        try:
+            self.on_frame(*match)
+        except ValueError as err:
+            self.skipped += 1
+            self.get_logger().warning(f"skipped frame {match[0]}: {err}",
+                                      throttle_duration_sec=self.throttle)

@@ -16,8 +16,8 @@ import numpy as np
 from .. import msgconv
 from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
 from ..core import classes
-from .common import (StampMatcher, declare_config, header_ns, image_msg, latched_qos,
-                     output_qos, run_node, sensor_qos)
+from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
+                     latched_qos, output_qos, run_node, sensor_qos)
 
 DESCRIPTION = ("Segments depth into convex segments, clusters them on the rendered "
                "embedding and entropy, and publishes /neurncd/labels (mono16), "
@@ -38,7 +38,7 @@ def make_node():
     from std_msgs.msg import String
 
 
-    class DiscoveryNode(Node):
+    class DiscoveryNode(PairedFrames, Node):
         def __init__(self) -> None:
             super().__init__("discovery",
                              automatically_declare_parameters_from_overrides=True)
@@ -46,17 +46,16 @@ def make_node():
             node_cfg, self.topics = self.cfg.discovery_node, self.cfg.topics
             self.throttle = node_cfg.log_throttle_s
             self.discoverer = None
-            self.intrinsics = None
             self.matcher = StampMatcher(("depth", "embedding", "entropy"),
                                         int(node_cfg.sync_tolerance_ms * 1e6),
                                         node_cfg.queue_size)
             q = sensor_qos(node_cfg.queue_size)
             self.create_subscription(Image, self.topics.depth,
-                                     lambda m: self._offer("depth", m), q)
+                                     lambda m: self.offer("depth", m), q)
             self.create_subscription(Image, self.topics.rendered_embedding,
-                                     lambda m: self._offer("embedding", m), q)
+                                     lambda m: self.offer("embedding", m), q)
             self.create_subscription(Image, self.topics.entropy,
-                                     lambda m: self._offer("entropy", m), q)
+                                     lambda m: self.offer("entropy", m), q)
             self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
                                      sensor_qos())
             self.pub_labels = self.create_publisher(Image, self.topics.labels, output_qos())
@@ -64,26 +63,9 @@ def make_node():
                                                    output_qos())
             self.pub_classes = self.create_publisher(String, self.topics.classes,
                                                      latched_qos())
-            self.labelled = self.skipped = 0
+            self.labelled = 0
 
-        def on_info(self, msg) -> None:
-            try:
-                self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
-            except ValueError as err:
-                self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
-
-        def _offer(self, slot: str, msg) -> None:
-            match = self.matcher.add(slot, header_ns(msg), msg)
-            if match is None:
-                return
-            try:
-                self._label(*match)
-            except ValueError as err:
-                self.skipped += 1
-                self.get_logger().warning(f"skipped frame {match[0]}: {err}",
-                                          throttle_duration_sec=self.throttle)
-
-        def _label(self, stamp: int, group: dict) -> None:
+        def on_frame(self, stamp: int, group: dict) -> None:
             if self.intrinsics is None:
                 raise ValueError(f"no camera info yet on {self.topics.camera_info}")
             depth_msg = group["depth"]

@@ -10,12 +10,10 @@ from __future__ import annotations
 import threading
 import time
 
-import numpy as np
-
 from .. import msgconv
 from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
-from .common import (StampMatcher, declare_config, header_ns, image_msg, output_qos,
-                     run_node, sensor_qos)
+from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
+                     output_qos, run_node, sensor_qos)
 
 DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone and publishes the per-pixel "
                "pre-softmax logits as a 32FC<S> image on /neurncd/embedding.")
@@ -26,7 +24,7 @@ def make_node():
     from sensor_msgs.msg import CameraInfo, Image
 
 
-    class EmbeddingNode(Node):
+    class EmbeddingNode(PairedFrames, Node):
         def __init__(self) -> None:
             super().__init__("embedding",
                              automatically_declare_parameters_from_overrides=True)
@@ -47,19 +45,12 @@ def make_node():
                                      sensor_qos(node_cfg.queue_size))
             self.create_subscription(CameraInfo, topics.camera_info, self.on_info,
                                      sensor_qos())
-            self.intrinsics = None
             self._latest = None
             self._wake = threading.Condition()
             self._stop = False
             self.frames_in = self.frames_out = self.frames_dropped = 0
             self._worker = threading.Thread(target=self._work, name="backbone", daemon=True)
             self._worker.start()
-
-        def on_info(self, msg) -> None:
-            try:
-                self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
-            except ValueError as err:
-                self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
 
         def on_color(self, msg) -> None:
             self._offer("color", msg)

@@ -16,8 +16,8 @@ import cv2
 from .. import msgconv
 from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
 from ..core.frame import Frame
-from .common import (StampMatcher, declare_config, header_ns, image_msg, output_qos,
-                     run_node, sensor_qos)
+from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
+                     output_qos, run_node, sensor_qos)
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
                "/neurncd/rendered_embedding (32FC<S>) and /neurncd/entropy (32FC1) per "
@@ -31,7 +31,7 @@ def make_node():
     from std_srvs.srv import Trigger
 
 
-    class MapperNode(Node):
+    class MapperNode(PairedFrames, Node):
         def __init__(self) -> None:
             super().__init__("mapper", automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
@@ -46,19 +46,18 @@ def make_node():
                 self.get_logger().info(f"loaded map {self.node_cfg.map_path} "
                                        f"({self.mapper.iterations} iterations)")
                 self.mapper.start()
-            self.intrinsics = None
             self.matcher = StampMatcher(("color", "depth", "pose", "embedding"),
                                         int(self.node_cfg.sync_tolerance_ms * 1e6),
                                         self.node_cfg.queue_size)
             q = sensor_qos(self.node_cfg.queue_size)
             self.create_subscription(Image, self.topics.color,
-                                     lambda m: self._offer("color", m), q)
+                                     lambda m: self.offer("color", m), q)
             self.create_subscription(Image, self.topics.depth,
-                                     lambda m: self._offer("depth", m), q)
+                                     lambda m: self.offer("depth", m), q)
             self.create_subscription(PoseStamped, self.topics.pose,
-                                     lambda m: self._offer("pose", m), q)
+                                     lambda m: self.offer("pose", m), q)
             self.create_subscription(Image, self.topics.embedding,
-                                     lambda m: self._offer("embedding", m), q)
+                                     lambda m: self.offer("embedding", m), q)
             self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
                                      sensor_qos())
             self.pub_embedding = self.create_publisher(Image, self.topics.rendered_embedding,
@@ -67,26 +66,9 @@ def make_node():
             self.create_service(Trigger, "~/save_map", self.on_save)
             self.create_service(Trigger, "~/reset", self.on_reset)
             self.create_timer(self.node_cfg.publish_period_s, self.publish_ready)
-            self.keyframes_admitted = self.frames_skipped = self.published = 0
+            self.keyframes_admitted = self.published = 0
 
-        def on_info(self, msg) -> None:
-            try:
-                self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
-            except ValueError as err:
-                self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
-
-        def _offer(self, slot: str, msg) -> None:
-            match = self.matcher.add(slot, header_ns(msg), msg)
-            if match is None:
-                return
-            try:
-                self._admit(*match)
-            except ValueError as err:
-                self.frames_skipped += 1
-                self.get_logger().warning(f"skipped frame {match[0]}: {err}",
-                                          throttle_duration_sec=self.throttle)
-
-        def _admit(self, stamp: int, group: dict) -> None:
+        def on_frame(self, stamp: int, group: dict) -> None:
             if self.intrinsics is None:
                 raise ValueError(f"no camera info yet on {self.topics.camera_info}")
             rgb = msgconv.rgb_from_image(group["color"], self.topics.color)
@@ -171,7 +153,7 @@ def make_node():
                     self.get_logger().error(f"could not save map: {err}")
             self.get_logger().info(f"keyframes admitted {self.keyframes_admitted}, renderings "
                                    f"published {self.published}, frames skipped "
-                                   f"{self.frames_skipped}, iterations "
+                                   f"{self.skipped}, iterations "
                                    f"{self.mapper.iterations}")
 
     return MapperNode()
