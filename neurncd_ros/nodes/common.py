@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
+import cv2
 import numpy as np
 
 from .. import msgconv
@@ -175,6 +176,14 @@ def latched_qos():
 
 
 # ---------------------------------------------------------------- messages
+
+def fit_to(arr: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Resize a rendering to the depth frame's size (bilinear; channels kept)."""
+    if arr.shape[:2] == (height, width):
+        return arr
+    out = cv2.resize(arr, (width, height), interpolation=cv2.INTER_LINEAR)
+    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
+
 
 def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
     """An rclpy sensor_msgs/Image from ``msgconv.image_fields``-style fields."""

@@ -10,26 +10,16 @@ from __future__ import annotations
 
 import json
 
-import cv2
-import numpy as np
 
 from .. import msgconv
 from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
 from ..core import classes
-from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
+from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,
                      latched_qos, output_qos, run_node, sensor_qos)
 
 DESCRIPTION = ("Segments depth into convex segments, clusters them on the rendered "
                "embedding and entropy, and publishes /neurncd/labels (mono16), "
                "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON).")
-
-
-def fit_to(arr: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Resize a rendering to the depth frame's size (bilinear; channels kept)."""
-    if arr.shape[:2] == (height, width):
-        return arr
-    out = cv2.resize(arr, (width, height), interpolation=cv2.INTER_LINEAR)
-    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
 
 
 def make_node():

@@ -11,12 +11,10 @@ from __future__ import annotations
 import os
 import threading
 
-import cv2
-
 from .. import msgconv
 from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
 from ..core.frame import Frame
-from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
+from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,
                      output_qos, run_node, sensor_qos)
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
@@ -109,14 +107,8 @@ def make_node():
                 r_intr = intr if scale == 1.0 else intr.scaled(
                     max(1, round(intr.width * scale)), max(1, round(intr.height * scale)))
                 out = mapper.render(kf.pose, r_intr)
-                emb, ent = out["embedding"], out["entropy"]
-                if r_intr is not intr:
-                    emb = cv2.resize(emb, (intr.width, intr.height),
-                                     interpolation=cv2.INTER_LINEAR)
-                    ent = cv2.resize(ent, (intr.width, intr.height),
-                                     interpolation=cv2.INTER_LINEAR)
-                    if emb.ndim == 2:
-                        emb = emb[:, :, None]
+                emb = fit_to(out["embedding"], intr.height, intr.width)
+                ent = fit_to(out["entropy"], intr.height, intr.width)
                 self.pub_embedding.publish(image_msg(emb, f"32FC{emb.shape[2]}", kf.stamp_ns,
                                                      "camera", self.topics.rendered_embedding))
                 self.pub_entropy.publish(image_msg(ent, "32FC1", kf.stamp_ns, "camera",
