@@ -14,7 +14,7 @@ from neurncd_ros.core.backbone import small, train
 from neurncd_ros.core.params import ConfigError, build
 
 HELD_OUT_SEED = 1007
-"""A synthetic scene seed used neither for training (0-39) nor validation (1000-1004)."""
+"""A synthetic scene seed used neither for training (0-179) nor validation (1000-1004)."""
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -231,6 +231,41 @@ def test_train_loop_learns_a_toy_task(tmp_path):
     with pytest.raises(ValueError, match="overlap"):
         train.train_backbone(tmp_path / "x.pt", [0, 1], [1], data=(toy(4), toy(4)),
                              progress=False)
+
+
+def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
+    """Cached frames are reused, but never across a change of the generator's code."""
+    from neurncd_ros.core.data import synth
+
+    cfg = synth.SynthConfig(width=32, height=24)
+    fresh = train.synth_frames(3, 2, tmp_path, cfg)
+    files = list(tmp_path.glob("*.npz"))
+    assert len(files) == 1 and train.generator_hash() in files[0].name
+    # The cache is read: a doctored file under the same key is what comes back.
+    np.savez(files[0], rgb=np.zeros_like(fresh["rgb"]), depth=fresh["depth"],
+             semantic=fresh["semantic"])
+    assert train.synth_frames(3, 2, tmp_path, cfg)["rgb"].max() == 0
+    # Another generator version does not see that file: the frames are rendered again.
+    monkeypatch.setattr(train, "generator_hash", lambda: "0123456789")
+    again = train.synth_frames(3, 2, tmp_path, cfg)
+    assert np.array_equal(again["rgb"], fresh["rgb"])
+    assert len(list(tmp_path.glob("*.npz"))) == 2
+
+
+def test_record_command_reproduces_the_options():
+    import argparse
+
+    p = argparse.ArgumentParser()
+    train.add_arguments(p)
+    args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8", "16",
+                         "16"])
+    line = train.command_line(args)
+    assert line.startswith("neurncd train-backbone ")
+    again = p.parse_args(line.split()[2:])
+
+    def norm(ns):
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in vars(ns).items()}
+    assert norm(again) == norm(args)
 
 
 # ----------------------------------------------------------------------------- esanet

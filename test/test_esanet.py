@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from neurncd_ros.core.backbone import backbone as B
 from neurncd_ros.core.backbone import esanet as E
 from neurncd_ros.core.params import ConfigError, build
 
@@ -216,25 +217,30 @@ def test_context_module_pools_to_fixed_bins_at_any_size():
 
 # --- preprocessing ----------------------------------------------------------
 
+def _depth_input(depth: np.ndarray, dataset: str = "nyuv2", mode: str = "raw") -> np.ndarray:
+    t = torch.from_numpy(np.asarray(depth, np.float32))[None, None]
+    return E.preprocess_depth(t, dataset, mode)[0, 0].numpy()
+
+
 def test_normalisation_matches_hand_computed_values():
     rgb = np.array([[[255, 0, 128], [10, 200, 30]]], dtype=np.uint8)  # 1 x 2
-    out = E.normalize_rgb(rgb)
+    out = E.preprocess_rgb(torch.from_numpy(rgb).permute(2, 0, 1)[None].float())[0].numpy()
     assert out.shape == (3, 1, 2) and out.dtype == np.float32
     np.testing.assert_allclose(out[:, 0, 0], [(1 - 0.485) / 0.229, (0 - 0.456) / 0.224,
                                               (128 / 255 - 0.406) / 0.225], rtol=1e-6)
     depth = np.array([[2.0, 0.0, 0.5]], dtype=np.float32)
-    nyu = E.normalize_depth(depth, "nyuv2", "raw")
+    nyu = _depth_input(depth, "nyuv2", "raw")
     np.testing.assert_allclose(nyu, [[(2000 - NYU_MEAN) / NYU_STD, 0.0,
                                       (500 - NYU_MEAN) / NYU_STD]], rtol=1e-5)
-    sun = E.normalize_depth(depth, "sunrgbd", "raw")
+    sun = _depth_input(depth, "sunrgbd", "raw")
     np.testing.assert_allclose(sun, [[(20000 - SUN_MEAN) / SUN_STD, 0.0,
                                       (5000 - SUN_MEAN) / SUN_STD]], rtol=1e-5)
-    nan_hole = E.normalize_depth(np.array([[np.nan, np.inf]], np.float32), "nyuv2", "raw")
+    nan_hole = _depth_input(np.array([[np.nan, np.inf]], np.float32), "nyuv2", "raw")
     assert np.all(nan_hole == 0)
-    refined = E.normalize_depth(depth, "nyuv2", "refined")
+    refined = _depth_input(depth, "nyuv2", "refined")
     assert refined[0, 1] == pytest.approx(-NYU_MEAN / NYU_STD, rel=1e-5)
     with pytest.raises(ValueError, match="dataset"):
-        E.normalize_depth(depth, "kitti")
+        _depth_input(depth, "kitti")
 
 
 def _kinect_frame(real_data_dir):
@@ -245,47 +251,58 @@ def _kinect_frame(real_data_dir):
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth_mm.astype(np.float32) / 1000.0
 
 
-def test_preprocess_real_kinect_frame(real_data_dir):
+def _esanet(model, **cfg) -> B.Backbone:
+    return B.esanet_backbone(model, build(B.BackboneConfig, {"kind": "esanet", **cfg}))
+
+
+def test_preprocess_real_kinect_frame(real_data_dir, model37):
     rgb, depth = _kinect_frame(real_data_dir)
     holes = depth == 0
     assert holes.any() and (~holes).any()
-    pre = E.ESANetPreprocess()  # 480x640, NYUv2 statistics, raw mode
-    x_rgb, x_depth = pre(rgb, depth)
+    bb = _esanet(model37, esanet_dataset="sunrgbd")  # native 640x480
+    x_rgb, x_depth = bb.inputs([rgb], [depth])
     assert x_rgb.shape == (1, 3, 480, 640) and x_depth.shape == (1, 1, 480, 640)
     d = x_depth[0, 0].numpy()
-    # Same frame size: no resize; depth in mm standardised, holes kept at exactly 0.
-    np.testing.assert_allclose(d[~holes], (depth[~holes] * 1000.0 - NYU_MEAN) / NYU_STD,
+    # Same frame size: no resize; depth in 1/10 mm standardised, holes kept at exactly 0.
+    np.testing.assert_allclose(d[~holes], (depth[~holes] * 10000.0 - SUN_MEAN) / SUN_STD,
                                rtol=1e-5, atol=1e-5)
     assert np.all(d[holes] == 0)
     np.testing.assert_allclose(x_rgb[0, 1].numpy(), (rgb[..., 1] / 255 - 0.456) / 0.224,
                                rtol=1e-5, atol=1e-5)
+    # refined mode (from the one config schema): holes are normalised like any depth.
+    refined = _esanet(model37, esanet_dataset="sunrgbd", esanet_depth_mode="refined")
+    d = refined.inputs([rgb], [depth])[1][0, 0].numpy()
+    assert np.allclose(d[holes], -SUN_MEAN / SUN_STD)
     # NaN (ROS "no return") is a hole too; negative depth is an error.
     bad = depth.copy()
     bad[0, 0] = np.nan
-    assert pre(rgb, bad)[1][0, 0, 0, 0] == 0
+    assert bb.inputs([rgb], [bad])[1][0, 0, 0, 0] == 0
     bad[0, 0] = -1.0
     with pytest.raises(ValueError, match=">= 0"):
-        pre(rgb, bad)
+        bb.inputs([rgb], [bad])
 
 
 def test_resized_run_on_real_frame_returns_logits_at_frame_size(real_data_dir, model37):
     rgb, depth = _kinect_frame(real_data_dir)
-    pre = E.ESANetPreprocess(build(E.ESANetConfig, {"height": 256, "width": 320}))
-    x_rgb, x_depth = pre(rgb, depth)
+    bb = _esanet(model37, esanet_dataset="sunrgbd", input_width=320, input_height=256)
+    x_rgb, x_depth = bb.inputs([rgb], [depth])
     assert x_rgb.shape == (1, 3, 256, 320)
     # Nearest resizing never invents depth: every value is one of the input's values.
-    src = np.unique(E.normalize_depth(depth))
+    src = np.unique(_depth_input(depth, "sunrgbd"))
     assert np.isin(np.unique(x_depth.numpy()), src).all()
-    logits = E.predict_logits(model37, pre, rgb, depth)
+    logits = bb.predict(rgb, depth)
     assert logits.shape == (480, 640, 37) and logits.dtype == np.float32
     assert np.isfinite(logits).all()
 
 
-def test_config_rejects_sizes_not_divisible_by_32():
-    with pytest.raises(ConfigError, match="multiples of 32"):
-        build(E.ESANetConfig, {"height": 240, "width": 320})
+def test_config_rejects_sizes_not_divisible_by_32(model37):
+    with pytest.raises(ValueError, match="multiples of 32"):
+        _esanet(model37, esanet_dataset="sunrgbd", input_width=320, input_height=240)
+    bb = _esanet(model37, esanet_dataset="sunrgbd", input_width=320, input_height=256)
     with pytest.raises(ValueError, match="rgb must be"):
-        E.ESANetPreprocess()(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.float32))
+        bb.predict(np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.float32))
+    with pytest.raises(ConfigError, match="esanet_depth_mode"):
+        build(B.BackboneConfig, {"esanet_depth_mode": "filled"})
 
 
 @pytest.mark.slow

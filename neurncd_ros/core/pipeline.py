@@ -65,7 +65,7 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
     def label(frame: Frame, backbone_ids: np.ndarray) -> None:
         nonlocal n_labelled, n_overlays, n_evaluated, t_discovery
         t0 = time.perf_counter()
-        rendering = mapper.render(frame.pose, frame.intrinsics)
+        rendering = mapper.render(frame.pose, frame.intrinsics, depth=frame.depth)
         labels = discoverer.process(frame.depth, frame.intrinsics, rendering["embedding"],
                                     rendering["entropy"], frame.stamp_ns)
         t_discovery += time.perf_counter() - t0

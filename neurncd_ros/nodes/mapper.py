@@ -104,9 +104,8 @@ def make_node():
             for kf in mapper.ready_keyframes(self.cfg.mapper.min_iterations_before_publish):
                 intr = kf.intrinsics
                 scale = self.node_cfg.render_scale
-                r_intr = intr if scale == 1.0 else intr.scaled(
-                    max(1, round(intr.width * scale)), max(1, round(intr.height * scale)))
-                out = mapper.render(kf.pose, r_intr)
+                out = mapper.render(kf.pose, intr, max(1, round(intr.height * scale)),
+                                    max(1, round(intr.width * scale)), depth=kf.depth)
                 emb = fit_to(out["embedding"], intr.height, intr.width)
                 ent = fit_to(out["entropy"], intr.height, intr.width)
                 self.pub_embedding.publish(image_msg(emb, f"32FC{emb.shape[2]}", kf.stamp_ns,

@@ -61,6 +61,10 @@ class BackboneConfig:
     input_height: int = param(0, "model input height in pixels; 0 = native (240 default, "
                               "480 esanet); esanet needs a multiple of 32", lo=0, hi=4096,
                               unit="px")
+    esanet_depth_mode: str = param("raw", "ESANet depth holes: raw = a hole (0) stays 0 "
+                                   "after normalisation, as the public raw-sensor inference "
+                                   "does; refined = 0 is normalised like any depth (hole-free "
+                                   "depth only)", choices=("raw", "refined"))
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
     num_threads: int = param(1, "torch CPU threads (0 = leave torch's setting); 1 because the "
                              "nodes share the cores: 2 threads against a busy process took "
@@ -126,6 +130,24 @@ class Backbone:
         self.device = torch.device(device)
         self._preprocess = preprocess
 
+    def inputs(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The network's input tensors for some frames: validated, resized to the input
+        size (RGB bilinear, depth nearest so holes stay holes), normalised by the
+        network's own preprocessing."""
+        w, h = self.input_size
+        rgb_in, depth_in = [], []
+        for rgb, depth in zip(rgbs, depths):
+            depth = check_rgbd(rgb, depth)
+            if depth.shape != (h, w):
+                rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
+                depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
+            rgb_in.append(rgb)
+            depth_in.append(depth)
+        rgb_t = torch.from_numpy(np.stack(rgb_in)).permute(0, 3, 1, 2).float()
+        depth_t = torch.from_numpy(np.stack(depth_in))[:, None]
+        return self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
+
     def predict(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """One frame -> (H, W, S) float32 logits at the frame's own size."""
         return self.predict_batch([rgb], [depth])[0]
@@ -141,21 +163,9 @@ class Backbone:
             raise ValueError(f"got {len(rgbs)} rgb images but {len(depths)} depth images")
         if not rgbs:
             return []
-        w, h = self.input_size
-        rgb_in, depth_in, sizes = [], [], []
-        for rgb, depth in zip(rgbs, depths):
-            depth = check_rgbd(rgb, depth)
-            sizes.append(depth.shape)
-            if depth.shape != (h, w):
-                rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
-                # Nearest keeps holes as holes instead of smearing 0 into real depth.
-                depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
-            rgb_in.append(rgb)
-            depth_in.append(depth)
-        rgb_t = torch.from_numpy(np.stack(rgb_in)).permute(0, 3, 1, 2).float()
-        depth_t = torch.from_numpy(np.stack(depth_in))[:, None]
+        sizes = [np.asarray(d).shape for d in depths]
         with torch.inference_mode():
-            x_rgb, x_depth = self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
+            x_rgb, x_depth = self.inputs(rgbs, depths)
             logits = self.net(x_rgb, x_depth)
             if isinstance(logits, (tuple, list)):  # some nets return side outputs
                 logits = logits[0]
@@ -217,15 +227,25 @@ def _load_esanet(cfg: BackboneConfig) -> Backbone:
                          "no ESANet weights ship with the package")
     if not Path(cfg.checkpoint).is_file():
         raise ValueError(f"ESANet checkpoint {cfg.checkpoint} does not exist")
+    n = len(esanet_channel_to_id(cfg.esanet_dataset))
+    net = esanet.load_esanet_checkpoint(cfg.checkpoint, num_classes=n, device=cfg.device)
+    return esanet_backbone(net, cfg)
+
+
+def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
+    """Wrap an ESANet model in the Backbone interface with the public preprocessing of
+    ``cfg.esanet_dataset`` (depth unit and statistics) and ``cfg.esanet_depth_mode``."""
+    from . import esanet
+
     channel_to_id = esanet_channel_to_id(cfg.esanet_dataset)
-    net = esanet.load_esanet_checkpoint(cfg.checkpoint, num_classes=len(channel_to_id),
-                                        device=cfg.device)
-    dataset = cfg.esanet_dataset
+    dataset, mode = cfg.esanet_dataset, cfg.esanet_depth_mode
 
     def preprocess(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return esanet.preprocess_rgb(rgb), esanet.preprocess_depth(depth, dataset)
+        return esanet.preprocess_rgb(rgb), esanet.preprocess_depth(depth, dataset, mode)
 
-    return Backbone(net, "esanet", channel_to_id, _input_size(cfg), cfg.device, preprocess)
+    esanet_cfg = dataclasses.replace(cfg, kind="esanet")
+    return Backbone(net, "esanet", channel_to_id, _input_size(esanet_cfg), cfg.device,
+                    preprocess)
 
 
 def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:

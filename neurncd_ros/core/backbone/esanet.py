@@ -33,6 +33,8 @@ public ``raw`` depth mode (used by its sample inference with raw sensor depth)
 missing depth (0) is set back to 0 *after* normalisation, i.e. a hole looks
 like a pixel at the mean depth; in ``refined`` mode a 0 would be normalised
 like any value (-mean/std), which only makes sense for hole-free depth.
+Resizing a frame to the network size and the logits back is the job of the one
+``Backbone`` interface (``backbone.py``), which calls these functions.
 """
 
 from __future__ import annotations
@@ -44,18 +46,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from ..params import ConfigError, param
-
 __all__ = [
-    "ESANet", "ESANetConfig", "ESANetPreprocess", "DepthStats", "DEPTH_STATS",
-    "CheckpointError", "load_esanet_checkpoint", "preprocess_rgb", "preprocess_depth",
-    "normalize_rgb", "normalize_depth", "predict_logits", "STRIDE",
+    "ESANet", "DepthStats", "DEPTH_STATS", "DEPTH_MODES",
+    "CheckpointError", "load_esanet_checkpoint", "preprocess_rgb", "preprocess_depth", "STRIDE",
 ]
 
 STRIDE = 32
@@ -394,97 +392,6 @@ def preprocess_depth(depth: torch.Tensor, dataset: str = "nyuv2",
     if depth_mode == "raw":
         out = torch.where(d == 0, torch.zeros_like(out), out)
     return out
-
-
-def _check_frame(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """Validate one RGB-D pair; return depth with non-finite values as holes (0)."""
-    if not isinstance(rgb, np.ndarray) or rgb.dtype != np.uint8 or rgb.ndim != 3 \
-            or rgb.shape[2] != 3:
-        raise ValueError(f"rgb must be an (H, W, 3) uint8 array, got "
-                         f"{getattr(rgb, 'shape', type(rgb))} {getattr(rgb, 'dtype', '')}")
-    if not isinstance(depth, np.ndarray) or depth.dtype != np.float32 or depth.ndim != 2:
-        raise ValueError(f"depth must be an (H, W) float32 array in metres, got "
-                         f"{getattr(depth, 'shape', type(depth))} {getattr(depth, 'dtype', '')}")
-    if depth.shape != rgb.shape[:2]:
-        raise ValueError(f"depth {depth.shape} and rgb {rgb.shape[:2]} differ in size")
-    if depth.size == 0:
-        raise ValueError("empty image")
-    depth = np.where(np.isfinite(depth), depth, np.float32(0.0))
-    if (depth < 0).any():
-        raise ValueError(f"depth must be >= 0 metres (0 = hole), min is {float(depth.min())}")
-    return depth
-
-
-def normalize_rgb(rgb: np.ndarray) -> np.ndarray:
-    """(H,W,3) uint8 RGB -> (3,H,W) float32, /255 then ImageNet mean/std."""
-    t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float()
-    return preprocess_rgb(t)[0].numpy()
-
-
-def normalize_depth(depth: np.ndarray, dataset: str = "nyuv2",
-                    depth_mode: str = "raw") -> np.ndarray:
-    """(H,W) float32 metres -> (H,W) float32 standardised depth of ``dataset``."""
-    t = torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))[None, None]
-    return preprocess_depth(t, dataset, depth_mode)[0, 0].numpy()
-
-
-@dataclasses.dataclass(frozen=True)
-class ESANetConfig:
-    """How ESANet inputs are prepared (network size, depth unit/statistics, holes)."""
-
-    dataset: str = param("nyuv2", "dataset the checkpoint was trained on: sets the depth unit "
-                         "(nyuv2 mm, sunrgbd 1/10 mm) and depth mean/std",
-                         choices=tuple(DEPTH_STATS))
-    height: int = param(480, "network input height (multiple of 32)", lo=32, hi=4096, unit="px")
-    width: int = param(640, "network input width (multiple of 32)", lo=32, hi=4096, unit="px")
-    depth_mode: str = param("raw", "raw: depth holes (0) stay 0 after normalisation as in the "
-                            "public raw-depth inference; refined: 0 is normalised like any "
-                            "depth", choices=DEPTH_MODES)
-
-    def __post_init__(self) -> None:
-        if self.height % STRIDE or self.width % STRIDE:
-            raise ConfigError(f"ESANet height/width must be multiples of {STRIDE}, got "
-                              f"{self.height}x{self.width}; use 480x640 or 256x320")
-
-
-class ESANetPreprocess:
-    """Public test-time pipeline: resize (RGB bilinear, depth nearest), normalise;
-    and logits back to the frame size (bilinear, align_corners=False)."""
-
-    def __init__(self, cfg: ESANetConfig | None = None) -> None:
-        self.cfg = cfg or ESANetConfig()
-        _stats(self.cfg.dataset)
-
-    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-        """(H,W,3) uint8 RGB + (H,W) float32 metres -> (1,3,h,w), (1,1,h,w) network inputs."""
-        depth = _check_frame(rgb, depth)
-        h, w = self.cfg.height, self.cfg.width
-        if depth.shape != (h, w):
-            rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_LINEAR)
-            # Nearest keeps holes as holes instead of blending 0 into real depth.
-            depth = cv2.resize(depth, (w, h), interpolation=cv2.INTER_NEAREST)
-        rgb_t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float()
-        depth_t = torch.from_numpy(np.ascontiguousarray(depth))[None, None]
-        return (preprocess_rgb(rgb_t),
-                preprocess_depth(depth_t, self.cfg.dataset, self.cfg.depth_mode))
-
-    @staticmethod
-    def to_input_size(logits: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
-        """(N,C,h,w) logits -> (N,C,H,W) at the frame size ``size`` = (H, W)."""
-        if tuple(logits.shape[-2:]) == tuple(size):
-            return logits
-        return F.interpolate(logits, size=tuple(size), mode="bilinear", align_corners=False)
-
-
-def predict_logits(model: ESANet, pre: ESANetPreprocess, rgb: np.ndarray,
-                   depth: np.ndarray) -> np.ndarray:
-    """One frame -> (H, W, C) float32 logits at the frame's size (model in eval mode)."""
-    x_rgb, x_depth = pre(rgb, depth)
-    dev = next(model.parameters()).device
-    with torch.no_grad():
-        logits = model(x_rgb.to(dev), x_depth.to(dev))
-        logits = pre.to_input_size(logits, rgb.shape[:2])
-    return np.ascontiguousarray(logits[0].permute(1, 2, 0).cpu().numpy(), dtype=np.float32)
 
 
 # ---------------------------------------------------------------------------

@@ -12,8 +12,10 @@ among the 9 channels; IoU_k = |pred=k and gt=k| / |pred=k or gt=k| counted
 on those pixels only; the mean runs over the known classes present in the
 validation ground truth.
 
-Synthetic frames are generated once per (seed, frames, config) and cached as
-npz under a temporary folder (never inside the repository).
+Synthetic frames are generated once per (seed, frames, config, generator
+source) and cached as npz under a temporary folder (never inside the
+repository). The key includes a hash of the generator's source files, so a
+changed generator never serves stale frames.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -60,12 +62,23 @@ def _synth_cfg_dict(cfg) -> dict:
     return to_dict(cfg)
 
 
+def generator_hash() -> str:
+    """Short hash of the synthetic generator's source (part of the cache key)."""
+    data_dir = Path(__file__).resolve().parents[1] / "data"
+    h = hashlib.sha1()
+    for path in sorted(data_dir.glob("synth*.py")):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def synth_frames(seed: int, frames: int, cache_dir: Path | None = DEFAULT_CACHE,
                  synth_cfg=None) -> dict[str, np.ndarray]:
     """rgb (N,H,W,3) uint8, depth (N,H,W) float32, semantic (N,H,W) uint16 of one scene.
 
     Generated with ``synth.generate(seed, frames, cfg)`` and cached as npz
-    keyed by seed, frame count and a hash of the synthetic config.
+    keyed by seed, frame count, a hash of the synthetic config and a hash of
+    the generator's source (:func:`generator_hash`).
     """
     from ..data import synth
 
@@ -74,7 +87,7 @@ def synth_frames(seed: int, frames: int, cache_dir: Path | None = DEFAULT_CACHE,
                        .encode()).hexdigest()[:10]
     path = None
     if cache_dir is not None:
-        path = Path(cache_dir) / f"synth_s{seed}_n{frames}_{key}.npz"
+        path = Path(cache_dir) / f"synth_s{seed}_n{frames}_{key}_{generator_hash()}.npz"
         if path.is_file():
             with np.load(path) as z:
                 return {k: z[k] for k in ("rgb", "depth", "semantic")}
@@ -246,7 +259,9 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
                    max_minutes: float = 0.0, progress: bool = True, synth_cfg=None,
                    fps: float = 1.0, val_frames_per_seed: int = 30, workers: int = 1,
                    crop: tuple[int, int] | None = (192, 256), init: str | None = None,
-                   data: tuple[dict, dict] | None = None, command: str | None = None) -> dict:
+                   data: tuple[dict, dict] | None = None, command: str | None = None,
+                   widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
+                   val_every: int = 0) -> dict:
     """Train the default net, save weights to ``out_path`` and the record next to it.
 
     Returns the training record (also written as ``<out_path stem>.json``):
@@ -256,6 +271,10 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
     ``synth_cfg`` defaults to :func:`training_synth_config` (``fps``); ``data`` =
     (train, val) dicts bypasses the synthetic generator (tests). ``init`` continues
     from an earlier weight file (its record, if beside it, is kept under "init").
+    ``val_every`` > 0 validates every that many steps and logs the score in the
+    record's history (for the record only: the final weights are always those
+    of the last step, no checkpoint is selected on the validation seeds).
+    The reported validation scores are those of the saved fp16 weights.
     """
     from tqdm import tqdm
 
@@ -290,10 +309,14 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
     steps_per_epoch = max(n // batch_size, 1)
     total_steps = steps_per_epoch * epochs
 
-    model = small.SmallRGBDNet()
+    model = small.SmallRGBDNet(widths=tuple(widths))
     init_record = None
     if init:
-        model.load_state_dict(small.load_weights(init).state_dict())
+        prev_model = small.load_weights(init)
+        if prev_model.widths != model.widths:
+            raise ValueError(f"--init {init} has widths {prev_model.widths}, "
+                             f"training widths {model.widths}")
+        model.load_state_dict(prev_model.state_dict())
         rec_path = Path(init).with_suffix(".json")
         init_record = {"weights": str(init)}
         if rec_path.is_file():
@@ -311,6 +334,7 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
         return lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac)))
 
     history = []
+    val_curve: list[dict] = []
     step = 0
     t_train = time.time()
     bar = tqdm(total=total_steps, desc="train backbone", disable=not progress, unit="step")
@@ -342,6 +366,11 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
                 budget = max_minutes * 60 - (time.time() - t_start)
                 total_steps = max(step + 1, min(total_steps, int(budget / per_step)))
                 bar.total = total_steps
+            if val_every > 0 and step % val_every == 0 and step < total_steps:
+                score = evaluate(model, val)["known_miou"]
+                val_curve.append({"step": step, "val_known_miou": round(score, 2)})
+                tqdm.write(f"step {step}: validation known-class mIoU {score:.2f} %")
+                model.train()
             if step >= total_steps:
                 stop = True
                 break
@@ -351,10 +380,15 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
             break
     bar.close()
     train_time = time.time() - t_train
-    val_scores = evaluate(model, val, progress=progress)
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    small.save_weights(model, str(out_path))
+    shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
+    val_scores = evaluate(shipped, val, progress=progress)
     record = {
         "command": command if command is not None else " ".join(sys.argv),
         "arch": "SmallRGBDNet", "arch_version": small.ARCH_VERSION,
+        "widths": list(model.widths),
         "parameters": small.count_parameters(model),
         "gflops_320x240": round(small.count_flops(model) / 1e9, 3),
         "train_seeds": list(map(int, train_seeds)), "val_seeds": list(map(int, val_seeds)),
@@ -367,10 +401,11 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
                 "(ceiling, picture, tv, window) ignored",
         "augmentation": f"flip, zoom 0.8-1.35, crop {crop}, colour jitter 0.25, rgb noise",
         "synth_fps": fps if data is None else None,
+        "synth_generator_hash": generator_hash() if data is None else None,
         "val_known_miou": round(val_scores["known_miou"], 2),
         "val_pixel_accuracy": round(val_scores["pixel_accuracy"], 4),
         "val_iou": val_scores["iou"],
-        "history": history, "init": init_record,
+        "history": history, "val_curve": val_curve, "init": init_record,
         "data_seconds": round(t_data, 1), "train_seconds": round(train_time, 1),
         "total_seconds": round(time.time() - t_start, 1),
         "num_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
@@ -379,8 +414,6 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
     }
     if synth_cfg is not None:
         record["synth_config"] = _synth_cfg_dict(synth_cfg)
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     small.save_weights(model, str(out_path), extra={"val_known_miou": record["val_known_miou"]})
     record["weights_bytes"] = out_path.stat().st_size
     out_path.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
@@ -423,8 +456,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--out", default=str(DEFAULT_WEIGHTS),
                         help="weight file to write (record json goes next to it)")
-    parser.add_argument("--train-seeds", type=_seed_list, default=_seed_list("0-59"),
-                        help="synthetic scene seeds to train on, e.g. 0-59")
+    parser.add_argument("--train-seeds", type=_seed_list, default=_seed_list("0-179"),
+                        help="synthetic scene seeds to train on, e.g. 0-179")
     parser.add_argument("--val-seeds", type=_seed_list, default=_seed_list("1000-1004"),
                         help="held-out synthetic seeds for validation")
     parser.add_argument("--frames", type=int, default=20,
@@ -435,7 +468,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="synthetic frame rate: 1 spreads a scene's frames over its room")
     parser.add_argument("--workers", type=int, default=2,
                         help="processes rendering synthetic scenes")
-    parser.add_argument("--epochs", type=int, default=12, help="passes over the training frames")
+    parser.add_argument("--epochs", type=int, default=32, help="passes over the training frames")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--lr", type=float, default=4e-3, help="peak AdamW learning rate")
     parser.add_argument("--seed", type=int, default=0, help="seed of init, order, augmentation")
@@ -445,10 +478,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training window size after zoom")
     parser.add_argument("--max-minutes", type=float, default=0.0,
                         help="fit the schedule into this wall time (0 = run all epochs)")
+    parser.add_argument("--widths", type=int, nargs=4, default=small.DEFAULT_WIDTHS,
+                        metavar=("C0", "C1", "C2", "C3"),
+                        help="channels of the stem and the three encoder stages")
+    parser.add_argument("--val-every", type=int, default=1000,
+                        help="validate every this many steps, for the record (0 = end only)")
     parser.add_argument("--init", default=None,
                         help="continue training from this weight file")
     parser.add_argument("--cache", default=str(DEFAULT_CACHE),
                         help="folder for cached synthetic frames (npz)")
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The ``neurncd train-backbone`` command that reproduces a run (every option spelt out)."""
+    parts = ["neurncd", "train-backbone"]
+    for key, value in sorted(vars(args).items()):
+        if key in ("func", "command") or value is None:
+            continue
+        flag = "--" + key.replace("_", "-")
+        if isinstance(value, (list, tuple)):
+            if key.endswith("seeds"):
+                parts += [flag, ",".join(map(str, value))]
+            else:
+                parts += [flag, *map(str, value)]
+        else:
+            parts += [flag, str(value)]
+    return " ".join(parts)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -458,7 +513,8 @@ def main(args: argparse.Namespace) -> int:
                    num_threads=args.threads, cache_dir=Path(args.cache) if args.cache else None,
                    max_minutes=args.max_minutes, fps=args.fps,
                    val_frames_per_seed=args.val_frames, workers=args.workers,
-                   crop=tuple(args.crop), init=args.init)
+                   crop=tuple(args.crop), init=args.init, widths=tuple(args.widths),
+                   val_every=args.val_every, command=command_line(args))
     return 0
 
 

@@ -54,6 +54,8 @@ class KeyframeInfo:
     pose: np.ndarray
     intrinsics: Intrinsics
     id: int
+    depth: np.ndarray | None = None
+    """The keyframe's measured depth (read-only view), to render it depth-guided."""
 
 
 @dataclasses.dataclass
@@ -71,7 +73,9 @@ class Keyframe:
     published: bool = False
 
     def info(self) -> KeyframeInfo:
-        return KeyframeInfo(self.stamp_ns, self.pose.copy(), self.intrinsics, self.id)
+        depth = self.depth.view()
+        depth.flags.writeable = False
+        return KeyframeInfo(self.stamp_ns, self.pose.copy(), self.intrinsics, self.id, depth)
 
 
 def _pose_gaps(poses: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,11 +14,23 @@ def photometric(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((rgb - target) ** 2).sum(dim=-1).mean()
 
 
-def embedding_kl(target_logits: torch.Tensor, rendered_logits: torch.Tensor) -> torch.Tensor:
-    """L_e = KL(softmax(E) || softmax(E_hat)) averaged over rays (E from the backbone)."""
+def embedding_kl(target_logits: torch.Tensor, rendered_logits: torch.Tensor,
+                 confidence_power: float = 0.0) -> torch.Tensor:
+    """L_e = KL(softmax(E) || softmax(E_hat)) averaged over rays (E from the backbone).
+
+    ``confidence_power`` p > 0 weights each ray by (1 - H(E) / log S)^p, normalised
+    to mean 1 over the batch: where views disagree, the field follows the views in
+    which the backbone was sure (0 = the paper's plain mean).
+    """
     log_p = F.log_softmax(target_logits, dim=-1)
     log_q = F.log_softmax(rendered_logits, dim=-1)
-    return (log_p.exp() * (log_p - log_q)).sum(dim=-1).mean()
+    p = log_p.exp()
+    kl = (p * (log_p - log_q)).sum(dim=-1)
+    if confidence_power <= 0:
+        return kl.mean()
+    h = -(p * log_p).sum(dim=-1) / math.log(target_logits.shape[-1])
+    w = (1.0 - h).clamp(min=0.0) ** confidence_power
+    return (w * kl).sum() / w.sum().clamp(min=1e-8)
 
 
 def depth_l1(depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

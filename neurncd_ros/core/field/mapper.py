@@ -25,6 +25,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -48,6 +49,10 @@ class MapperConfig(KeyframeConfig):
                          "'reference'", choices=("fast", "reference"))
     lambda_embedding: float = param(0.5, "weight of the embedding KL loss L_e against the "
                                     "photometric loss", lo=0.0, hi=100.0)
+    embedding_confidence_power: float = param(
+        2.0, "weight each ray's embedding loss by (1 - backbone entropy / log S)^power "
+        "(fast): where views disagree the field follows the confident ones (0 = plain mean)",
+        lo=0.0, hi=16.0)
     rays_per_iteration: int = param(2048, "training rays per iteration (fast backend)",
                                     lo=16, hi=65536)
     reference_rays_per_iteration: int = param(1024, "training rays per iteration "
@@ -56,7 +61,7 @@ class MapperConfig(KeyframeConfig):
     lr_mlp: float = param(5e-3, "Adam learning rate of the MLP heads (fast)", lo=0.0, hi=1.0)
     lr_reference: float = param(5e-4, "Adam learning rate of the reference MLPs",
                                 lo=0.0, hi=1.0)
-    plane_cell_sizes: list[float] = param([0.16, 0.04], "texel spacing of each tri-plane "
+    plane_cell_sizes: list[float] = param([0.16, 0.04, 0.02], "texel spacing of each tri-plane "
                                           "level, coarsest first; finer ones are rounded to "
                                           "the coarsest / an integer (fast)", lo=0.001,
                                           hi=10.0, unit="m")
@@ -91,6 +96,9 @@ class MapperConfig(KeyframeConfig):
                                  "(fewer re-allocations)", lo=0.0, hi=2.0)
     min_iterations_before_publish: int = param(100, "training iterations a keyframe gets "
                                                "before it is ready to publish", lo=0, hi=10 ** 7)
+    render_with_depth: bool = param(True, "render a frame that has measured depth with "
+                                    "samples around it, as in training (fast backend; "
+                                    "otherwise, and for the reference, from the field alone)")
     render_chunk: int = param(1 << 17, "field samples (rays x samples per ray) evaluated per "
                               "render chunk: bounds render memory", lo=1024, hi=1 << 26)
     train_chunk: int = param(1 << 16, "field samples per backward pass; larger batches are "
@@ -112,7 +120,8 @@ def build_model(cfg: MapperConfig, channels: int) -> FieldModel:
     return FastModel(channels, list(cfg.plane_cell_sizes), cfg.plane_channels, cfg.hidden,
                      cfg.surface_samples, cfg.free_samples, cfg.surface_band,
                      cfg.render_coarse_samples, cfg.render_fine_samples, cfg.lambda_embedding,
-                     cfg.lambda_depth, cfg.lambda_free, cfg.lr_grid, cfg.lr_mlp)
+                     cfg.lambda_depth, cfg.lambda_free, cfg.lr_grid, cfg.lr_mlp,
+                     cfg.embedding_confidence_power)
 
 
 def _keyframe_extent(frame: Frame, max_depth: float) -> tuple[np.ndarray, np.ndarray]:
@@ -367,18 +376,34 @@ class Mapper:
             return self._snap, self._lo.copy(), self._hi.copy()
 
     @torch.no_grad()
-    def render_rays(self, origins: np.ndarray, dirs: np.ndarray) -> dict[str, np.ndarray]:
-        """Render world rays (directions z-normalised in their camera) in chunks."""
+    def render_rays(self, origins: np.ndarray, dirs: np.ndarray,
+                    depth: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Render world rays (directions z-normalised in their camera) in chunks.
+
+        ``depth`` (N,) measured z-depth per ray (0 or non-finite = none; beyond
+        ``max_depth`` ignored) lets the fast backend sample around the surface
+        (``render_with_depth``); None renders from the field alone.
+        """
         model, lo, hi = self._snapshot()
         lo_t, hi_t = torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
         o_all = torch.from_numpy(np.asarray(origins, np.float32).reshape(-1, 3))
         d_all = torch.from_numpy(np.asarray(dirs, np.float32).reshape(-1, 3))
+        z_all = None
+        if depth is not None and self.cfg.render_with_depth:
+            z = np.asarray(depth, np.float32).reshape(-1)
+            if z.shape[0] != o_all.shape[0]:
+                raise ValueError(f"depth has {z.shape[0]} values for {o_all.shape[0]} rays")
+            z = np.where(np.isfinite(z) & (z > 0) & (z <= self.cfg.max_depth), z, 0.0)
+            z_all = torch.from_numpy(z.astype(np.float32))
         parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "embedding": []}
-        chunk = max(1, self.cfg.render_chunk // model.render_samples_per_ray)
+        per_ray = model.render_samples_per_ray if z_all is None else max(
+            model.render_samples_per_ray, model.train_samples_per_ray)
+        chunk = max(1, self.cfg.render_chunk // per_ray)
         for s in range(0, o_all.shape[0], chunk):
             o, d = o_all[s:s + chunk], d_all[s:s + chunk]
             near, far = aabb_near_far(o, d, lo_t, hi_t, self.cfg.near)
-            out = model.render_rays(o, d, near, far)
+            out = model.render_rays(o, d, near, far,
+                                    None if z_all is None else z_all[s:s + chunk])
             for k in parts:
                 parts[k].append(out[k])
         rgb = torch.cat(parts["rgb"]).clamp(0.0, 1.0)
@@ -387,11 +412,14 @@ class Mapper:
                 "embedding": emb.numpy(), "entropy": L.entropy_torch(emb).numpy()}
 
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, height: int | None = None,
-               width: int | None = None) -> dict[str, np.ndarray]:
+               width: int | None = None, depth: np.ndarray | None = None
+               ) -> dict[str, np.ndarray]:
         """Render a view: rgb (H, W, 3) in [0, 1], depth (H, W), embedding (H, W, S), entropy.
 
         With ``height``/``width`` the camera is rendered at that resolution
-        (intrinsics scaled accordingly).
+        (intrinsics scaled accordingly). ``depth``: the view's measured depth
+        image at ``intrinsics``' size (resampled, nearest, to the rendered size),
+        used to place the samples (see :meth:`render_rays`).
         """
         pose = check_pose(pose)
         intr = intrinsics
@@ -399,10 +427,18 @@ class Mapper:
             if height is None or width is None or height < 1 or width < 1:
                 raise ValueError(f"give both height and width >= 1, got {height}x{width}")
             intr = intrinsics.scaled(int(width), int(height))
+        z = None
+        if depth is not None:
+            z = np.asarray(depth, np.float32)
+            if z.shape != intrinsics.shape:
+                raise ValueError(f"depth has shape {z.shape} but the intrinsics are "
+                                 f"{intrinsics.width}x{intrinsics.height}")
+            if z.shape != intr.shape:
+                z = cv2.resize(z, (intr.width, intr.height), interpolation=cv2.INTER_NEAREST)
         u, v = pixel_grid(intr.height, intr.width)
         d = camera_directions(intr, u, v) @ pose[:3, :3].T
         o = np.broadcast_to(pose[:3, 3], d.shape)
-        out = self.render_rays(o, d)
+        out = self.render_rays(o, d, None if z is None else z[v, u])
         h, w = intr.height, intr.width
         return {"rgb": out["rgb"].reshape(h, w, 3).astype(np.float32),
                 "depth": out["depth"].reshape(h, w).astype(np.float32),

@@ -5,8 +5,20 @@
   coarse and fine. No depth loss, no depth-guided sampling.
 - ``FastModel``: tri-plane field; training samples are depth-guided (RGB-D
   input) and a depth loss plus a free-space loss shape the density; rendering
-  (no depth available for a new view) is coarse-to-fine: a density-only
-  stratified pass, then importance samples evaluated by the full field.
+  of a view without depth is coarse-to-fine: a density-only stratified pass,
+  then importance samples evaluated by the full field; a view with measured
+  depth (every frame the mapper publishes) is rendered with the training
+  sample layout around that depth (24 samples, no search pass).
+
+Fast defaults, measured on synthetic seed 7 (300 frames streamed as in
+``bench/field.py`` but clocked by iterations, 30 held-out frames, 1,100
+iterations, backbone logits as targets; known-class accuracy of the
+depth-guided / field-only render against ground truth, backbone 0.944):
+two tri-plane levels (16, 4 cm) 0.948 / 0.942 at 26.6 dB (the field-only
+render is 0.4-0.9 points lower in every row); lambda_e 2 0.950 / 0.943 but 24.8 dB; 16 plane channels 0.949 /
+0.944 (1.4x slower); hidden 64 0.949 / 0.943 (1.6x slower); a third 2 cm level
+0.950 / 0.943, 27.2 dB (1.2x slower); confidence weighting p = 2 0.949 /
+0.944; 2 cm level + p = 2 (chosen) 0.951 / 0.946 at 27.5 dB.
 """
 
 from __future__ import annotations
@@ -62,7 +74,13 @@ class FieldModel(nn.Module):
                ) -> dict[str, torch.Tensor]:
         raise NotImplementedError
 
-    def render_rays(self, origins, dirs, near, far) -> dict[str, torch.Tensor]:
+    def render_rays(self, origins, dirs, near, far, depth=None) -> dict[str, torch.Tensor]:
+        """Rendered rgb, depth, embedding (and weights) per ray.
+
+        ``depth`` (R,) measured z-depth, 0 = none: a backend may use it to place
+        its samples (the fast one does); without it the view is rendered from the
+        field alone.
+        """
         raise NotImplementedError
 
     def query(self, points: torch.Tensor) -> torch.Tensor:
@@ -99,7 +117,8 @@ class ReferenceModel(FieldModel):
         return {"total": lp + self.lambda_embedding * le, "photometric": lp, "embedding": le,
                 "fine_rgb_mse": ((fine["rgb"] - batch.rgb) ** 2).mean().detach()}
 
-    def render_rays(self, origins, dirs, near, far):
+    def render_rays(self, origins, dirs, near, far, depth=None):
+        # Faithful to the paper: the measured depth is not used.
         return self._both(origins, dirs, near, far, perturb=False)[1]
 
     def param_groups(self):
@@ -110,8 +129,10 @@ class FastModel(FieldModel):
     def __init__(self, channels: int, cell_sizes: list[float], plane_channels: int,
                  hidden: int, n_surface: int, n_free: int, band: float,
                  n_render_coarse: int, n_render_fine: int, lambda_embedding: float,
-                 lambda_depth: float, lambda_free: float, lr_grid: float, lr_mlp: float) -> None:
+                 lambda_depth: float, lambda_free: float, lr_grid: float, lr_mlp: float,
+                 confidence_power: float = 0.0) -> None:
         super().__init__()
+        self.confidence_power = confidence_power
         self.field = TriPlaneField(channels, cell_sizes, plane_channels, hidden)
         self.n_surface, self.n_free, self.band = n_surface, n_free, band
         self.n_render_coarse, self.n_render_fine = n_render_coarse, n_render_fine
@@ -126,7 +147,7 @@ class FastModel(FieldModel):
                                   self.band, perturb=True)
         out = _render(self.field, batch.origins, batch.dirs, t)
         lp = losses.photometric(out["rgb"], batch.rgb)
-        le = losses.embedding_kl(batch.embedding, out["embedding"])
+        le = losses.embedding_kl(batch.embedding, out["embedding"], self.confidence_power)
         ld = losses.depth_l1(out["depth"], batch.depth)
         lf = losses.free_space(out["weights"], t, batch.depth, self.band)
         total = (lp + self.lambda_embedding * le + self.lambda_depth * ld
@@ -134,12 +155,39 @@ class FastModel(FieldModel):
         return {"total": total, "photometric": lp, "embedding": le, "depth": ld,
                 "free_space": lf, "fine_rgb_mse": ((out["rgb"] - batch.rgb) ** 2).mean().detach()}
 
-    def render_rays(self, origins, dirs, near, far):
+    def _render_free(self, origins, dirs, near, far):
+        """No depth: a density-only stratified pass, then importance samples."""
         t_c = samplers.stratified(near, far, self.n_render_coarse, perturb=False)
         sigma = _eval(self.field, origins, dirs, t_c, geometry_only=True)["sigma"]
         w = renderer.render_weights(sigma, t_c, dirs.norm(dim=-1))
         t_f = samplers.importance(t_c, w, self.n_render_fine, perturb=False)
         return _render(self.field, origins, dirs, torch.sort(t_f, dim=-1).values)
+
+    def _render_guided(self, origins, dirs, near, far, depth):
+        """Measured depth: the training sample layout (band + stratified), 24 samples, no
+        search pass; the surface is where training put it, and no mass from in front
+        of or behind it blends into the embedding."""
+        t = samplers.depth_guided(near, far, depth, self.n_surface, self.n_free, self.band,
+                                  perturb=False)
+        return _render(self.field, origins, dirs, t)
+
+    def render_rays(self, origins, dirs, near, far, depth=None):
+        if depth is None:
+            return self._render_free(origins, dirs, near, far)
+        valid = depth > 0
+        if bool(valid.all()):
+            return self._render_guided(origins, dirs, near, far, depth)
+        if not bool(valid.any()):
+            return self._render_free(origins, dirs, near, far)
+        out_g = self._render_guided(origins[valid], dirs[valid], near[valid], far[valid],
+                                    depth[valid])
+        out_f = self._render_free(origins[~valid], dirs[~valid], near[~valid], far[~valid])
+        out = {}
+        for k in ("rgb", "embedding", "depth", "opacity"):
+            v = out_g[k].new_empty((origins.shape[0],) + out_g[k].shape[1:])
+            v[valid], v[~valid] = out_g[k], out_f[k]
+            out[k] = v
+        return out
 
     def param_groups(self):
         grid = list(self.field.planes.parameters())
