@@ -8,8 +8,8 @@ Writes bench/results/discovery.json (flat figures) and bench/results/geoseg.png
     .venv/bin/python bench/discovery.py --only seg # segmentation figures only
 
 Figures:
-- geoseg_ms_320x240: median segmentation time per frame over 5 synthetic seeds
-  (10..14, realistic depth noise), with the embedding-edge cue as the node runs
+- geoseg_ms_320x240: median segmentation time per frame over 5 held-out synthetic
+  seeds (seeds.TEST[:5], realistic depth noise), with the embedding-edge cue as the node runs
   it; segment_purity: pixel-weighted share of segment pixels in their segment's
   majority GT instance, with the cue; segment_purity_geometric_only: without
   it; segments_per_frame (with the cue);
@@ -19,11 +19,11 @@ Figures:
   index; mcl_20k_peak_rss_gb: peak RSS of a child process doing only that;
   mcl_5k_r12_*: the same 5k set at inflation 12;
 - tune_<affinity>_r<inflation>_{ari,purity,clusters}: the grid of mcl.tune on
-  segment descriptors of training seeds 0..3 (labels: each segment's majority GT
-  class), plus the chosen row;
-- e2e_*: the Discoverer on held-out seeds 20, 21 (every 3rd frame), percent.
-Embeddings come from the default backbone when its weights exist, otherwise from
-modulation.simulate_embedding (see "embedding_source").
+  segment descriptors of tuning seeds (seeds.TUNE[:4]; labels: each segment's
+  majority GT class), plus the chosen row.
+The end-to-end discovery scores (backbone -> Embedding-NeRF -> discovery) are
+bench/ncd.py's. Embeddings come from the default backbone when its weights
+exist, otherwise from modulation.simulate_embedding (see "embedding_source").
 """
 
 from __future__ import annotations
@@ -47,17 +47,16 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros.core.classes import colourise  # noqa: E402
+from neurncd_ros.core.data import seeds  # noqa: E402
 from neurncd_ros.core.discovery.geoseg import GeoSegConfig, segment_depth  # noqa: E402
-from neurncd_ros.core.discovery.labeller import Discoverer, DiscoveryConfig  # noqa: E402
 from neurncd_ros.core.discovery.mcl import MCLConfig, markov_cluster, tune  # noqa: E402
-from neurncd_ros.core.discovery.metrics import Evaluator, adjusted_rand_index  # noqa: E402
+from neurncd_ros.core.discovery.metrics import adjusted_rand_index  # noqa: E402
 from neurncd_ros.core.discovery.modulation import ModulationConfig, segment_descriptors, \
     simulate_embedding, softmax  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
-GEOSEG_SEEDS = (10, 11, 12, 13, 14)
-TRAIN_SEEDS = (0, 1, 2, 3)
-TEST_SEEDS = (20, 21)
+GEOSEG_SEEDS = seeds.TEST[:5]
+TUNE_SEEDS = seeds.TUNE[:4]
 
 
 from _common import commit  # noqa: E402  (bench/ is on sys.path)
@@ -166,7 +165,7 @@ def bench_tuning(embed, frames: int, step: int) -> tuple[dict, list[dict]]:
     """mcl.tune on descriptors of training-seed segments; flat figures and the rows."""
     mod = ModulationConfig()
     xs, ys = [], []
-    for seed in tqdm(TRAIN_SEEDS, desc="tuning seeds"):
+    for seed in tqdm(TUNE_SEEDS, desc="tuning seeds"):
         dx, dy = [], []
         for i, f in enumerate(frames_of(seed, frames, step)):
             seg = segment_depth(f.depth, f.intrinsics)
@@ -197,25 +196,6 @@ def bench_tuning(embed, frames: int, step: int) -> tuple[dict, list[dict]]:
     if chosen:
         out.update({f"tune_default_{m}": chosen[0][m] for m in ("ari", "purity", "clusters")})
     return out, rows
-
-
-def bench_e2e(embed, frames: int, step: int) -> dict:
-    """Discoverer with default settings on held-out seeds (percent)."""
-    ev, times = Evaluator(), []
-    for seed in tqdm(TEST_SEEDS, desc="end-to-end seeds"):
-        d = Discoverer(DiscoveryConfig())
-        for i, f in enumerate(frames_of(seed, frames, step)):
-            emb, ent = embed(f, i)
-            t = time.perf_counter()
-            lab = d.process(f.depth, f.intrinsics, emb, ent, f.stamp_ns)
-            times.append(time.perf_counter() - t)
-            ev.update(lab, f.semantic)
-    r = ev.result()
-    return {"e2e_miou_known": r["miou_known"], "e2e_miou_novel": r["miou_novel"],
-            "e2e_miou_all": r["miou_all"], "e2e_total_acc": r["total_acc"],
-            "e2e_avg_acc": r["avg_acc"], "e2e_assigned_miou": r["assigned_miou"],
-            "e2e_novel_clusters_matched": float(len(r["novel_matching"])),
-            "e2e_ms_per_frame": 1000 * statistics.median(times)}
 
 
 def main() -> None:
@@ -263,7 +243,6 @@ def main() -> None:
             print(child.stderr[-2000:], file=sys.stderr)
     tuned, rows = bench_tuning(embed, frames=8 if q else 24, step=4)
     res.update(tuned)
-    res.update(bench_e2e(embed, frames=9 if q else 45, step=3))
     res["cores"] = os.cpu_count()
     res["commit"] = commit()
     res["quick"] = q
@@ -275,7 +254,7 @@ def main() -> None:
             continue
         v = res[k]
         print(f"{k:34s} {v:.4g}" if isinstance(v, float) else f"{k:34s} {v}")
-    print(f"\ntuning grid (training seeds {TRAIN_SEEDS}, ARI / purity / clusters):")
+    print(f"\ntuning grid (tuning seeds {TUNE_SEEDS}, ARI / purity / clusters):")
     print(f"{'affinity':10s} {'eta':>5s} {'inflation':>9s} {'ari':>7s} {'purity':>7s} "
           f"{'clusters':>8s}")
     for r in rows:

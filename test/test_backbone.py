@@ -231,6 +231,16 @@ def test_train_loop_learns_a_toy_task(tmp_path):
     with pytest.raises(ValueError, match="overlap"):
         train.train_backbone(tmp_path / "x.pt", [0, 1], [1], data=(toy(4), toy(4)),
                              progress=False)
+    # Reproducible: the same options give the same weights, bit for bit.
+    rng = np.random.default_rng(0)
+    data = (toy(16), toy(4))
+    for name in ("a.pt", "b.pt"):
+        train.train_backbone(tmp_path / name, [0], [1], epochs=2, batch_size=4, data=data,
+                             num_threads=1, progress=False, command="test", crop=(32, 48),
+                             widths=(8, 8, 16, 16))
+    a = small.load_weights(str(tmp_path / "a.pt")).state_dict()
+    b = small.load_weights(str(tmp_path / "b.pt")).state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):

@@ -10,11 +10,12 @@ iterations, as the mapper node publishes it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
 import cv2
 import numpy as np
@@ -38,48 +39,44 @@ def _overlay(frame: Frame, labels: np.ndarray, backbone_ids: np.ndarray,
     return np.concatenate(tiles, axis=1)
 
 
-def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
-               total: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Run the whole pipeline on frames; returns a result dict (metrics if GT exists)."""
+@dataclasses.dataclass
+class StreamTimes:
+    """Seconds spent per stage of :func:`stream_renderings` (accumulated)."""
+
+    backbone: float = 0.0
+    training: float = 0.0
+    rendering: float = 0.0
+    frames: int = 0
+
+
+def stream_renderings(frames: Iterable[Frame], cfg: Config, backbone, mapper,
+                      total: int | None = None, progress: bool = True,
+                      times: StreamTimes | None = None
+                      ) -> Iterator[tuple[Frame, np.ndarray, dict[str, np.ndarray]]]:
+    """Backbone and Embedding-NeRF over a stream; yields what discovery needs.
+
+    Every frame goes through the backbone and is offered to the mapper as a
+    keyframe, then ``run.train_iterations_per_frame`` iterations train (plus
+    ``run.warmup_iterations`` after the first); one frame in ``run.label_every``
+    is rendered (with its measured depth) once the field has trained on it for
+    ``mapper.min_iterations_before_publish`` iterations, and yielded as
+    (frame, backbone argmax ids, rendering with embedding and entropy).
+    """
     from tqdm import tqdm
 
-    from .backbone.backbone import load_backbone
-    from .discovery.labeller import Discoverer
-    from .discovery.metrics import Evaluator
-    from .field.mapper import Mapper
-
-    out = Path(out_dir)
-    (out / "overlays").mkdir(parents=True, exist_ok=True)
     run = cfg.run
-    t_start = time.perf_counter()
-    backbone = load_backbone(cfg.backbone)
-    mapper = Mapper(cfg.mapper, backbone.channels)
-    discoverer = Discoverer(cfg.discovery, backbone.channel_to_id, mcl_cfg=cfg.mcl,
-                            seg_cfg=cfg.segmentation, mod_cfg=cfg.modulation)
-    ev_ncd, ev_backbone = Evaluator(), Evaluator()
+    times = times if times is not None else StreamTimes()
     pending: deque[tuple[int, Frame, np.ndarray]] = deque()
     min_iters = cfg.mapper.min_iterations_before_publish
-    n_in = n_labelled = n_overlays = n_evaluated = 0
-    t_backbone = t_train = t_discovery = 0.0
 
-    def label(frame: Frame, backbone_ids: np.ndarray) -> None:
-        nonlocal n_labelled, n_overlays, n_evaluated, t_discovery
+    def render(frame: Frame) -> dict[str, np.ndarray]:
         t0 = time.perf_counter()
-        rendering = mapper.render(frame.pose, frame.intrinsics, depth=frame.depth)
-        labels = discoverer.process(frame.depth, frame.intrinsics, rendering["embedding"],
-                                    rendering["entropy"], frame.stamp_ns)
-        t_discovery += time.perf_counter() - t0
-        n_labelled += 1
-        if frame.semantic is not None:
-            ev_ncd.update(labels, frame.semantic)
-            ev_backbone.update(backbone_ids, frame.semantic)
-            n_evaluated += 1
-        if n_overlays < run.overlays:
-            pic = _overlay(frame, labels, backbone_ids, rendering["entropy"])
-            cv2.imwrite(str(out / "overlays" / f"{frame.stamp_ns}.png"), pic[:, :, ::-1])
-            n_overlays += 1
+        out = mapper.render(frame.pose, frame.intrinsics, depth=frame.depth)
+        times.rendering += time.perf_counter() - t0
+        return out
 
     bar = tqdm(frames, total=total, desc="run", unit="frame", disable=not progress)
+    n_in = 0
     for frame in bar:
         if run.max_frames and n_in >= run.max_frames:
             break
@@ -89,23 +86,66 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
         t1 = time.perf_counter()
         mapper.add_keyframe(frame, logits)
         iters = run.train_iterations_per_frame + (run.warmup_iterations if n_in == 0 else 0)
-        mapper.step(iters)
+        if iters:
+            mapper.step(iters)
         t2 = time.perf_counter()
-        t_backbone += t1 - t0
-        t_train += t2 - t1
+        times.backbone += t1 - t0
+        times.training += t2 - t1
         if n_in % run.label_every == 0:
             pending.append((mapper.iterations, frame, backbone_ids))
         n_in += 1
+        times.frames = n_in
         while pending and mapper.iterations - pending[0][0] >= min_iters:
             _, f, ids = pending.popleft()
-            label(f, ids)
-        bar.set_postfix(iters=mapper.iterations, labelled=n_labelled)
+            yield f, ids, render(f)
+        bar.set_postfix(iters=mapper.iterations)
+    bar.close()
     if pending:  # the stream ended: give the last frames their training, then label them
-        mapper.step(max(0, min_iters - (mapper.iterations - pending[-1][0])))
+        more = max(0, min_iters - (mapper.iterations - pending[-1][0]))
+        if more:
+            t0 = time.perf_counter()
+            mapper.step(more)
+            times.training += time.perf_counter() - t0
         while pending:
             _, f, ids = pending.popleft()
-            label(f, ids)
-    bar.close()
+            yield f, ids, render(f)
+
+
+def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
+               total: int | None = None, progress: bool = True) -> dict[str, Any]:
+    """Run the whole pipeline on frames; returns a result dict (metrics if GT exists)."""
+    from .backbone.backbone import load_backbone
+    from .discovery.labeller import Discoverer
+    from .discovery.metrics import Evaluator
+    from .field.mapper import Mapper
+
+    out = Path(out_dir)
+    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    backbone = load_backbone(cfg.backbone)
+    mapper = Mapper(cfg.mapper, backbone.channels)
+    discoverer = Discoverer(cfg.discovery, backbone.channel_to_id, mcl_cfg=cfg.mcl,
+                            seg_cfg=cfg.segmentation, mod_cfg=cfg.modulation)
+    ev_ncd, ev_backbone = Evaluator(), Evaluator()
+    times = StreamTimes()
+    n_labelled = n_overlays = n_evaluated = 0
+    t_discovery = 0.0
+    for frame, backbone_ids, rendering in stream_renderings(frames, cfg, backbone, mapper,
+                                                            total, progress, times):
+        t0 = time.perf_counter()
+        labels = discoverer.process(frame.depth, frame.intrinsics, rendering["embedding"],
+                                    rendering["entropy"], frame.stamp_ns)
+        t_discovery += time.perf_counter() - t0
+        n_labelled += 1
+        if frame.semantic is not None:
+            ev_ncd.update(labels, frame.semantic)
+            ev_backbone.update(backbone_ids, frame.semantic)
+            n_evaluated += 1
+        if n_overlays < cfg.run.overlays:
+            pic = _overlay(frame, labels, backbone_ids, rendering["entropy"])
+            cv2.imwrite(str(out / "overlays" / f"{frame.stamp_ns}.png"), pic[:, :, ::-1])
+            n_overlays += 1
+    n_in = times.frames
     if n_in == 0:
         raise ValueError("no frames to run on")
 
@@ -113,7 +153,9 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
         "frames": n_in, "labelled": n_labelled, "iterations": mapper.iterations,
         "backend": cfg.mapper.backend, "backbone": cfg.backbone.kind,
         "seconds": round(time.perf_counter() - t_start, 2),
-        "seconds_backbone": round(t_backbone, 2), "seconds_training": round(t_train, 2),
+        "seconds_backbone": round(times.backbone, 2),
+        "seconds_training": round(times.training, 2),
+        "seconds_rendering": round(times.rendering, 2),
         "seconds_discovery": round(t_discovery, 2),
         "classes": {str(k): v for k, v in discoverer.classes().items()},
         "out_dir": str(out),
@@ -172,7 +214,8 @@ def summary(result: dict[str, Any]) -> str:
     lines = [f"ran {result['frames']} frames ({result['labelled']} labelled) in "
              f"{result['seconds']} s: backbone {result['seconds_backbone']} s, field "
              f"training {result['seconds_training']} s ({result['iterations']} iterations, "
-             f"{result['backend']}), discovery {result['seconds_discovery']} s"]
+             f"{result['backend']}), rendering {result['seconds_rendering']} s, discovery "
+             f"{result['seconds_discovery']} s"]
     m = result.get("metrics")
     if m:
         b = result["metrics_backbone_only"]

@@ -24,6 +24,7 @@ DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and pub
 
 def make_node():
     from geometry_msgs.msg import PoseStamped
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_srvs.srv import Trigger
@@ -63,7 +64,11 @@ def make_node():
             self.pub_entropy = self.create_publisher(Image, self.topics.entropy, output_qos())
             self.create_service(Trigger, "~/save_map", self.on_save)
             self.create_service(Trigger, "~/reset", self.on_reset)
-            self.create_timer(self.node_cfg.publish_period_s, self.publish_ready)
+            # Rendering a keyframe takes up to a second: its own callback group lets the
+            # executor's other threads keep taking frames meanwhile (the core Mapper
+            # renders from a snapshot, so both may run at once).
+            self.create_timer(self.node_cfg.publish_period_s, self.publish_ready,
+                              callback_group=MutuallyExclusiveCallbackGroup())
             self.keyframes_admitted = self.published = 0
 
         def on_frame(self, stamp: int, group: dict) -> None:
@@ -104,8 +109,13 @@ def make_node():
             for kf in mapper.ready_keyframes(self.cfg.mapper.min_iterations_before_publish):
                 intr = kf.intrinsics
                 scale = self.node_cfg.render_scale
-                out = mapper.render(kf.pose, intr, max(1, round(intr.height * scale)),
-                                    max(1, round(intr.width * scale)), depth=kf.depth)
+                try:
+                    out = mapper.render(kf.pose, intr, max(1, round(intr.height * scale)),
+                                        max(1, round(intr.width * scale)), depth=kf.depth)
+                except ValueError as err:  # e.g. ~/reset emptied the map meanwhile
+                    self.get_logger().warning(f"keyframe {kf.stamp_ns} not rendered: {err}",
+                                              throttle_duration_sec=self.throttle)
+                    continue
                 emb = fit_to(out["embedding"], intr.height, intr.width)
                 ent = fit_to(out["entropy"], intr.height, intr.width)
                 self.pub_embedding.publish(image_msg(emb, f"32FC{emb.shape[2]}", kf.stamp_ns,

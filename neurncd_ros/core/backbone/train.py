@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import classes
+from ..data import seeds
 from . import small
 
 IGNORE = 255
@@ -450,16 +451,32 @@ def _seed_list(text: str) -> list[int]:
     return out
 
 
+def seed_text(seeds: Sequence[int]) -> str:
+    """[0, 1, 2, 5] -> '0-2,5' (the inverse of the --*-seeds parser)."""
+    out, run = [], []
+    for s in list(seeds) + [None]:
+        if s is not None and run and s == run[-1] + 1:
+            run.append(s)
+            continue
+        if run:
+            out.append(f"{run[0]}-{run[-1]}" if len(run) > 2 else ",".join(map(str, run)))
+        run = [s] if s is not None else []
+    return ",".join(out)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``neurncd train-backbone``."""
     from .backbone import DEFAULT_WEIGHTS
 
     parser.add_argument("--out", default=str(DEFAULT_WEIGHTS),
                         help="weight file to write (record json goes next to it)")
-    parser.add_argument("--train-seeds", type=_seed_list, default=_seed_list("0-179"),
-                        help="synthetic scene seeds to train on, e.g. 0-179")
-    parser.add_argument("--val-seeds", type=_seed_list, default=_seed_list("1000-1004"),
-                        help="held-out synthetic seeds for validation")
+    parser.add_argument("--train-seeds", type=_seed_list,
+                        default=list(seeds.BACKBONE_TRAIN),
+                        help="synthetic scene seeds to train on (default "
+                        f"{seed_text(seeds.BACKBONE_TRAIN)}, see core/data/seeds.py)")
+    parser.add_argument("--val-seeds", type=_seed_list, default=list(seeds.BACKBONE_VAL),
+                        help="held-out synthetic seeds for validation (default "
+                        f"{seed_text(seeds.BACKBONE_VAL)})")
     parser.add_argument("--frames", type=int, default=20,
                         help="frames per training scene")
     parser.add_argument("--val-frames", type=int, default=30,
@@ -498,7 +515,7 @@ def command_line(args: argparse.Namespace) -> str:
         flag = "--" + key.replace("_", "-")
         if isinstance(value, (list, tuple)):
             if key.endswith("seeds"):
-                parts += [flag, ",".join(map(str, value))]
+                parts += [flag, seed_text(value)]
             else:
                 parts += [flag, *map(str, value)]
         else:

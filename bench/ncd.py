@@ -1,0 +1,279 @@
+"""End-to-end novel class discovery: backbone -> Embedding-NeRF -> discovery, scored.
+
+Each synthetic scene (``--frames`` frames at 320x240, 30 Hz, Kinect-like depth)
+goes through the offline pipeline exactly as ``neurncd run`` does
+(``pipeline.stream_renderings``: the default backbone, the fast mapper with the
+run.* schedule, labelled frames rendered with their depth). The renderings
+(rendered embedding + entropy) and the backbone's own logits of the labelled
+frames are cached (npz under /tmp, keyed by seed, frame count, mapper and run
+configuration, backbone weights and generator source), so the discovery stage
+can be scored and tuned many times.
+
+Scenes: tuning on ``seeds.TUNE`` (rooms the backbone never saw), report on
+``seeds.TEST`` (held out from everything). Rows of the report (percent):
+
+- ``neurncd``: the shipped defaults on the rendered embedding and entropy;
+- ``backbone_logits``: the same discovery on the backbone's per-frame logits
+  and their entropy (no Embedding-NeRF: what multi-view fusion buys);
+- ``paper_mcl``: the paper's clustering (cosine affinity, inflation 12);
+- ``embedding_only`` / ``entropy_only``: the paper's modulation ablations;
+- ``backbone``: the backbone's argmax alone (knows no novel class);
+- ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
+
+``--tune`` first runs a coordinate search over the labelling and clustering
+parameters on the tuning scenes (mIoU over all classes) and prints the grid;
+the chosen values are what the shipped config should hold (they are not
+applied automatically). Writes bench/results/ncd.json and ncd.png (rgb | GT |
+backbone | NeurNCD | entropy for a few test frames).
+
+    .venv/bin/python bench/ncd.py                # report on 4 test scenes
+    .venv/bin/python bench/ncd.py --tune         # coordinate search first
+    .venv/bin/python bench/ncd.py --quick        # 2 + 2 short scenes (smoke)
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from neurncd_ros.core import classes, config, pipeline  # noqa: E402
+from neurncd_ros.core.backbone import train as bb_train  # noqa: E402
+from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, entropy, \
+    load_backbone  # noqa: E402
+from neurncd_ros.core.camera import Intrinsics  # noqa: E402
+from neurncd_ros.core.data import seeds, synth  # noqa: E402
+from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
+from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402
+from neurncd_ros.core.field.mapper import Mapper  # noqa: E402
+from neurncd_ros.core.params import to_dict  # noqa: E402
+
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
+
+RESULTS = REPO / "bench" / "results"
+CACHE = Path(os.environ.get("NEURNCD_NCD_CACHE", "/tmp/neurncd_ncd_cache"))
+
+
+def _key(cfg: config.Config, seed: int, frames: int) -> str:
+    h = hashlib.sha1()
+    h.update(json.dumps({"mapper": to_dict(cfg.mapper), "run": to_dict(cfg.run),
+                         "synth": to_dict(cfg.synth), "seed": seed, "frames": frames},
+                        sort_keys=True, default=str).encode())
+    h.update(DEFAULT_WEIGHTS.read_bytes())
+    h.update(bb_train.generator_hash().encode())
+    return h.hexdigest()[:12]
+
+
+def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
+    """Labelled frames of one scene: depth, K, rendered embedding/entropy, backbone logits,
+    semantic, rgb (arrays stacked over frames; embeddings float16)."""
+    path = CACHE / f"ncd_s{seed}_n{frames}_{_key(cfg, seed, frames)}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    torch.manual_seed(0)
+    backbone = load_backbone(cfg.backbone)
+    mapper = Mapper(cfg.mapper, backbone.channels)
+    rows: dict[str, list] = {k: [] for k in ("rgb", "depth", "K", "embedding", "entropy",
+                                             "logits", "semantic", "stamp")}
+    stream = synth.generate(seed, frames, cfg.synth)
+    for f, _, r in pipeline.stream_renderings(stream, cfg, backbone, mapper, total=frames,
+                                              progress=False):
+        rows["rgb"].append(f.rgb)
+        rows["depth"].append(f.depth)
+        rows["K"].append(f.intrinsics.K)
+        rows["embedding"].append(r["embedding"].astype(np.float16))
+        rows["entropy"].append(r["entropy"])
+        rows["logits"].append(backbone.predict(f.rgb, f.depth).astype(np.float16))
+        rows["semantic"].append(f.semantic)
+        rows["stamp"].append(f.stamp_ns)
+    data = {k: np.stack(v) for k, v in rows.items()}
+    CACHE.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **data)
+    tmp.replace(path)
+    return data
+
+
+def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
+             keep: list | None = None) -> dict:
+    """Run a fresh Discoverer over every scene's labelled frames; pooled metrics.
+
+    ``source``: "rendered" (the Embedding-NeRF's embedding and entropy), "logits"
+    (the backbone's per-frame logits and their entropy) or "argmax" (the backbone's
+    argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
+    of the first frames for the picture.
+    """
+    ev = Evaluator()
+    c2i = classes.CHANNEL_TO_ID
+    times = []
+    for sc in scenes:
+        d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
+                       mod_cfg=cfg.modulation)
+        h, w = sc["depth"].shape[1:]
+        for i in range(len(sc["depth"])):
+            intr = Intrinsics.from_matrix(sc["K"][i], w, h)
+            logits = sc["logits"][i].astype(np.float32)
+            if source == "rendered":
+                emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
+            else:
+                emb, ent = logits, entropy(logits)
+            t = time.perf_counter()
+            if source == "argmax":
+                lab = c2i[logits.argmax(-1)].astype(np.uint16)
+            else:
+                lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]))
+            times.append(time.perf_counter() - t)
+            ev.update(lab, sc["semantic"][i])
+            if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
+                keep.append((sc["rgb"][i], sc["semantic"][i],
+                             c2i[logits.argmax(-1)].astype(np.uint16), lab, ent))
+    r = ev.result()
+    out = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc",
+                             "assigned_miou")}
+    out["novel_classes_matched"] = len(r["novel_matching"])
+    out["ms_per_frame"] = 1000 * statistics.median(times)
+    out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
+    return out
+
+
+def with_overrides(base: config.Config, overrides: dict) -> config.Config:
+    nested = base.to_nested()
+    for key, value in overrides.items():
+        sec, name = key.split(".", 1)
+        nested[sec][name] = value
+    return config.from_nested(nested)
+
+
+GRID = {
+    "discovery.entropy_threshold": [0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.6],
+    "discovery.majority_share": [0.4, 0.5, 0.6, 0.7, 0.8],
+    "mcl.inflation": [1.2, 1.4, 1.6, 2.0, 2.5],
+    "mcl.eta": [3.0, 6.0, 10.0],
+    "modulation.entropy_weight": [0.3, 1.0, 3.0],
+    "discovery.min_cluster_segments": [1, 2, 4],
+}
+
+
+def tune(scenes: list[dict], base: config.Config, rounds: int = 2) -> tuple[dict, list]:
+    """Coordinate search: each parameter in turn over its grid, keep the best mIoU(all)."""
+    best = {k: getattr(getattr(base, k.split(".")[0]), k.split(".")[1]) for k in GRID}
+    rows = []
+    score = discover(scenes, with_overrides(base, best))["miou_all"]
+    for rnd in range(rounds):
+        changed = False
+        for key, values in GRID.items():
+            for v in tqdm(values, desc=f"round {rnd} {key}", leave=False):
+                if v == best[key]:
+                    continue
+                trial = {**best, key: v}
+                r = discover(scenes, with_overrides(base, trial))
+                rows.append({"round": rnd, "param": key, "value": v, **{
+                    k: r[k] for k in ("miou_all", "miou_known", "miou_novel")}})
+                tqdm.write(f"  {key}={v}: all {r['miou_all']:.2f} known {r['miou_known']:.2f}"
+                           f" novel {r['miou_novel']:.2f}")
+                if r["miou_all"] > score + 1e-6:
+                    score, best, changed = r["miou_all"], trial, True
+        if not changed:
+            break
+    return {"best": best, "miou_all": score}, rows
+
+
+def picture(rows: list, path: Path) -> None:
+    tiles = []
+    for rgb, gt, bb_ids, lab, ent in rows:
+        e = ent / max(float(ent.max()), 1e-6)
+        e = cv2.applyColorMap(np.clip(e * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_MAGMA)
+        tiles.append(np.concatenate([rgb, classes.colourise(gt), classes.colourise(bb_ids),
+                                     classes.colourise(lab), e[:, :, ::-1]], axis=1))
+    if tiles:
+        cv2.imwrite(str(path), cv2.cvtColor(np.concatenate(tiles, 0), cv2.COLOR_RGB2BGR))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="2 + 2 short scenes (smoke)")
+    ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--test-scenes", type=int, default=4)
+    ap.add_argument("--tune-scenes", type=int, default=4)
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override a parameter (YAML value) for every row")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    frames = 45 if args.quick else args.frames
+    n_test = 2 if args.quick else args.test_scenes
+    n_tune = 2 if args.quick else args.tune_scenes
+    import yaml
+    base = config.load(None, {k: yaml.safe_load(v) for k, v in
+                              (s.split("=", 1) for s in args.set)})
+    res: dict = {"frames_per_scene": frames, "quick": bool(args.quick),
+                 "test_seeds": list(seeds.TEST[:n_test])}
+
+    t0 = time.perf_counter()
+    test = [scene(base, s, frames) for s in tqdm(seeds.TEST[:n_test], desc="test scenes")]
+    res["scene_seconds"] = round(time.perf_counter() - t0, 1)
+    res["labelled_frames"] = int(sum(len(s["depth"]) for s in test))
+    if args.tune:
+        tune_scenes = [scene(base, s, frames) for s in tqdm(seeds.TUNE[:n_tune],
+                                                             desc="tuning scenes")]
+        chosen, rows = tune(tune_scenes, base)
+        res["tune_seeds"] = list(seeds.TUNE[:n_tune])
+        res["tune_best"] = chosen["best"]
+        res["tune_best_miou_all"] = chosen["miou_all"]
+        (RESULTS / "ncd_tuning.json").write_text(json.dumps(rows, indent=1))
+        print("tuned on", res["tune_seeds"], "->", chosen)
+
+    keep: list = []
+    variants = {
+        "neurncd": (base, "rendered"),
+        **({"tuned": (with_overrides(base, res["tune_best"]), "rendered")} if args.tune else {}),
+        "backbone_logits": (base, "logits"),
+        "paper_mcl": (with_overrides(base, {"mcl.affinity": "cosine", "mcl.inflation": 12.0}),
+                      "rendered"),
+        "embedding_only": (with_overrides(base, {"modulation.mode": "embedding"}), "rendered"),
+        "entropy_only": (with_overrides(base, {"modulation.mode": "entropy"}), "rendered"),
+        "backbone": (base, "argmax"),
+    }
+    for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
+        r = discover(test, cfg, source, keep if name == "neurncd" else None)
+        for k, v in r.items():
+            if k == "iou":
+                for c, x in v.items():
+                    res[f"{name}_iou_{c}"] = x
+            else:
+                res[f"{name}_{k}"] = v
+    res["cores"] = os.cpu_count()
+    res["commit"] = commit()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "ncd.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    picture(keep, RESULTS / "ncd.png")
+
+    cols = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou",
+            "novel_classes_matched")
+    print(f"\n{res['labelled_frames']} labelled frames of test seeds {res['test_seeds']} "
+          f"({frames} frames each), percent")
+    print(f"{'row':16s} " + " ".join(f"{c[:13]:>13s}" for c in cols))
+    for name in variants:
+        print(f"{name:16s} " + " ".join(
+            f"{res[f'{name}_{c}']:13.1f}" if isinstance(res[f"{name}_{c}"], float)
+            else f"{res[f'{name}_{c}']:13d}" for c in cols))
+    print(f"wrote {RESULTS / 'ncd.json'} and ncd.png")
+
+
+if __name__ == "__main__":
+    main()
