@@ -3,7 +3,11 @@
 Writes bench/results/backbone.json (flat figures) and bench/results/backbone.png
 (rgb | ground truth | prediction for a few held-out synthetic frames).
 
-    .venv/bin/python bench/backbone.py            # full: 5 val seeds x 30 frames
+Accuracy: ``default_*`` on the 5 validation seeds of the training record
+(seeds.BACKBONE_VAL; reported there, never used to pick weights), ``test_*`` on
+5 of the project's test seeds (seeds.TEST), 30 frames each, 1 s apart.
+
+    .venv/bin/python bench/backbone.py            # full: 5 + 5 held-out seeds x 30 frames
     .venv/bin/python bench/backbone.py --quick    # fewer runs / frames (smoke)
 """
 
@@ -27,9 +31,10 @@ sys.path.insert(0, str(REPO))
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.backbone import backbone as bb  # noqa: E402
 from neurncd_ros.core.backbone import train  # noqa: E402
+from neurncd_ros.core.data import seeds  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
-VAL_SEEDS = (1000, 1001, 1002, 1003, 1004)
+VAL_SEEDS = seeds.BACKBONE_VAL
 
 
 from _common import commit  # noqa: E402  (bench/ is on sys.path)
@@ -95,16 +100,18 @@ def esanet_speed(runs: int) -> dict:
     return out
 
 
-def accuracy(backbone: bb.Backbone, stride: int = 1) -> tuple[dict, list]:
-    """Known-class mIoU through Backbone.predict on the held-out validation seeds.
+def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
+             prefix: str = "default") -> tuple[dict, list]:
+    """Known-class mIoU through Backbone.predict on held-out seeds.
 
-    The same frames as training validation (30 per seed, 1 s apart, cached);
+    By default the validation seeds of the training record (30 frames per seed,
+    1 s apart, cached; no weights were picked on them, the last step ships);
     ``stride`` > 1 keeps every stride-th frame (quick mode).
     """
     from tqdm import tqdm
 
-    data = train.load_scenes(VAL_SEEDS, 30, synth_cfg=train.training_synth_config(1.0),
-                             what="val", workers=2)
+    data = train.load_scenes(scene_seeds, 30, synth_cfg=train.training_synth_config(1.0),
+                             what="held-out", workers=2)
     data = {k: v[::stride] for k, v in data.items()}
     n = classes.NUM_KNOWN
     conf = np.zeros((n, n), dtype=np.int64)
@@ -118,11 +125,11 @@ def accuracy(backbone: bb.Backbone, stride: int = 1) -> tuple[dict, list]:
             shown.append((data["rgb"][i], data["semantic"][i],
                           backbone.channel_to_id[pred].astype(np.uint16)))
     s = train.scores_from_confusion(conf)
-    out = {"default_known_miou": s["known_miou"], "default_known_pixel_accuracy":
-           s["pixel_accuracy"], "val_frames": int(len(data["rgb"]))}
+    out = {f"{prefix}_known_miou": s["known_miou"], f"{prefix}_known_pixel_accuracy":
+           s["pixel_accuracy"], f"{prefix}_frames": int(len(data["rgb"]))}
     for name, v in s["iou"].items():
         if v is not None:
-            out[f"default_iou_{name}"] = v
+            out[f"{prefix}_iou_{name}"] = v
     return out, shown
 
 
@@ -149,6 +156,8 @@ def main() -> int:
     res.update(default_speed(backbone, runs))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)
     res.update(acc)
+    # The project's test scenes too (never used for training, validation or tuning).
+    res.update(accuracy(backbone, 5 if args.quick else 1, seeds.TEST[:5], "test")[0])
     if not args.no_esanet:
         res.update(esanet_speed(3 if args.quick else 10))
     from neurncd_ros.core.backbone import small

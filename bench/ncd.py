@@ -165,6 +165,8 @@ GRID = {
     "mcl.eta": [3.0, 6.0, 10.0],
     "modulation.entropy_weight": [0.3, 1.0, 3.0],
     "discovery.min_cluster_segments": [1, 2, 4],
+    "modulation.entropy_interior": [0, 2, 4],
+    "segmentation.embedding_edge_threshold": [0.2, 0.3, 0.4],
 }
 
 

@@ -184,6 +184,29 @@ def test_descriptor_modes_and_pooling():
     assert stats.pixels.tolist() == [int((seg == i).sum()) for i in range(len(LAYOUT))]
 
 
+def test_interior_entropy_ignores_the_boundary_band():
+    """A segment whose border pixels carry high entropy (as rendered boundaries do):
+    interior pooling sees only the flat inside; a segment too thin for an interior
+    keeps its all-pixel statistics."""
+    from neurncd_ros.core.discovery.modulation import interior
+
+    seg = np.full((20, 30), -1, np.int64)
+    seg[2:18, 2:20] = 0
+    seg[2:18, 22:24] = 1  # 2 px wide: no interior at radius 2
+    ent = np.full(seg.shape, 0.1, np.float32)
+    border = (seg == 0) & ~interior(seg, 2)
+    ent[border] = 2.0
+    ent[seg == 1] = 1.5
+    emb = np.zeros(seg.shape + (S,), np.float32)
+    core = interior(seg, 2)
+    assert core[4:16, 4:18].all() and not core[2, 5] and not core[(seg == 1)].any()
+    plain, _ = segment_stats(seg, emb, ent)
+    inner, _ = segment_stats(seg, emb, ent, entropy_interior=2)
+    assert plain.mean_entropy[0] > 0.5 and abs(inner.mean_entropy[0] - 0.1) < 1e-6
+    assert inner.std_entropy[0] < 1e-3
+    assert abs(inner.mean_entropy[1] - 1.5) < 1e-6 and inner.pixels[1] == 32
+
+
 def test_process_end_to_end_on_a_synthetic_frame():
     synth = pytest.importorskip("neurncd_ros.core.data.synth")
     from neurncd_ros.core.discovery.metrics import evaluate

@@ -165,7 +165,8 @@ class Discoverer:
     def process_segments(self, segments: np.ndarray, embedding: np.ndarray,
                          entropy: np.ndarray) -> np.ndarray:
         """As :meth:`process` but with a given segmentation (ids 0..n-1, -1 = none)."""
-        stats, mean_logit = segment_stats(segments, embedding, entropy)
+        stats, mean_logit = segment_stats(segments, embedding, entropy,
+                                          self.mod_cfg.entropy_interior)
         desc = descriptors_from_stats(stats, mean_logit, self.mod_cfg)
         present = stats.pixels > 0
         n = int(stats.pixels.size)

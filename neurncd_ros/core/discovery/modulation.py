@@ -51,6 +51,10 @@ class ModulationConfig:
     entropy_weight: float = param(0.3, "scale of the entropy part relative to the embedding "
                                   "part", lo=0.0, hi=100.0)
     entropy_std: bool = param(True, "append the entropy's standard deviation to its mean")
+    entropy_interior: int = param(0, "pool the entropy over the segment's interior only: "
+                                  "pixels at least this far from its border (the rendered "
+                                  "entropy peaks along every boundary; 0 = all pixels; "
+                                  "segments without interior use all)", lo=0, hi=32, unit="px")
 
 
 @dataclasses.dataclass
@@ -89,12 +93,28 @@ def softmax(embedding: np.ndarray) -> np.ndarray:
     return e / e.sum(axis=-1, keepdims=True)
 
 
-def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
-                  ) -> tuple[SegmentStats, np.ndarray]:
+def interior(segments: np.ndarray, radius: int) -> np.ndarray:
+    """Pixels whose neighbours up to ``radius`` px away (4 directions) share their segment."""
+    inside = segments >= 0
+    h, w = segments.shape
+    for r in range(1, radius + 1):
+        for dy, dx in ((r, 0), (-r, 0), (0, r), (0, -r)):
+            same = np.zeros((h, w), bool)
+            ys, yd = slice(max(dy, 0), h + min(dy, 0)), slice(max(-dy, 0), h + min(-dy, 0))
+            xs, xd = slice(max(dx, 0), w + min(dx, 0)), slice(max(-dx, 0), w + min(-dx, 0))
+            same[yd, xd] = segments[yd, xd] == segments[ys, xs]
+            inside &= same
+    return inside
+
+
+def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
+                  entropy_interior: int = 0) -> tuple[SegmentStats, np.ndarray]:
     """Per-segment stats plus the mean centred logits (n, S); ids 0..n-1, -1 = none.
 
     Logits are centred per pixel (their channel mean subtracted) because softmax
     ignores a common offset, so only the centred part carries information.
+    ``entropy_interior`` > 0 takes the entropy statistics over each segment's
+    interior (:func:`interior`), where it has one.
     """
     segments, embedding, entropy = _check(segments, embedding, entropy)
     n = int(segments.max()) + 1 if segments.size else 0
@@ -116,8 +136,18 @@ def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarr
     np.add.at(hist, (ids, emb.argmax(axis=1)), 1)
     ent_sum = np.bincount(ids, weights=ent, minlength=n)
     ent_sq = np.bincount(ids, weights=ent.astype(np.float64) ** 2, minlength=n)
-    mean_ent = ent_sum * inv
-    std_ent = np.sqrt(np.maximum(ent_sq * inv - mean_ent ** 2, 0.0))
+    ent_n = counts.astype(np.float64)
+    if entropy_interior > 0:
+        core = interior(segments, entropy_interior).ravel()[sel]
+        c_n = np.bincount(ids[core], minlength=n).astype(np.float64)
+        has = c_n > 0
+        ent_sum = np.where(has, np.bincount(ids[core], weights=ent[core], minlength=n),
+                           ent_sum)
+        ent_sq = np.where(has, np.bincount(ids[core], weights=ent[core].astype(np.float64) ** 2,
+                                           minlength=n), ent_sq)
+        ent_n = np.where(has, c_n, ent_n)
+    mean_ent = ent_sum / np.maximum(ent_n, 1)
+    std_ent = np.sqrt(np.maximum(ent_sq / np.maximum(ent_n, 1) - mean_ent ** 2, 0.0))
     stats = SegmentStats(counts, mean_ent.astype(np.float32), std_ent.astype(np.float32), hist,
                          (mean_prob * inv[:, None]).astype(np.float32))
     return stats, (mean_logit * inv[:, None]).astype(np.float32)
@@ -146,7 +176,7 @@ def descriptors_from_stats(stats: SegmentStats, mean_logit: np.ndarray,
 def segment_descriptors(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
                         cfg: ModulationConfig = ModulationConfig()) -> np.ndarray:
     """(n, D) float32 descriptor per segment id 0..n-1 (empty ids get a zero embedding part)."""
-    stats, mean_logit = segment_stats(segments, embedding, entropy)
+    stats, mean_logit = segment_stats(segments, embedding, entropy, cfg.entropy_interior)
     return descriptors_from_stats(stats, mean_logit, cfg)
 
 
