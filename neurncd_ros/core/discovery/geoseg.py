@@ -429,10 +429,14 @@ def _nearest_label(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio
 
 
 def _normals_agree(N: np.ndarray, i: np.ndarray, j: np.ndarray, min_cos: float) -> np.ndarray:
-    """n_i . n_j >= min_cos, or either normal unknown (zero)."""
-    dot = (N[:, i] * N[:, j]).sum(axis=0)
-    unknown = ~(N[:, i].any(axis=0) & N[:, j].any(axis=0))
-    return unknown | (dot >= min_cos)
+    """n_i . n_j >= min_cos, or either normal unknown (zero; unit normals have |n| = 1)."""
+    nx, ny, nz = N[0], N[1], N[2]
+    xi, yi, zi = nx[i], ny[i], nz[i]
+    xj, yj, zj = nx[j], ny[j], nz[j]
+    dot = xi * xj + yi * yj + zi * zj
+    # A zero normal makes the dot 0; a known pair has |n_i|^2 |n_j|^2 = 1.
+    known = (xi * xi + yi * yi + zi * zi) * (xj * xj + yj * yj + zj * zj) > 0.5
+    return ~known | (dot >= min_cos)
 
 
 def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: float,
@@ -470,6 +474,7 @@ def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: floa
     cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     near = cv2.dilate((lab >= 0).reshape(h + 2, W).astype(np.uint8), cross).ravel() > 0
     todo = np.flatnonzero(open_ & near)
+    mark = np.zeros(open_.size, bool)
     for _ in range(iterations):
         if todo.size == 0:
             break
@@ -496,7 +501,11 @@ def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: floa
             ref[done] = ref[src]
         open_[done] = False
         nxt = (done[:, None] + offsets[None, :]).ravel()
-        todo = np.unique(nxt[open_[nxt]])
+        nxt = nxt[open_[nxt]]
+        # Deduplicate through a mark image (cheaper than sorting); ascending order kept.
+        mark[nxt] = True
+        todo = np.flatnonzero(mark) if nxt.size > mark.size // 64 else np.unique(nxt)
+        mark[nxt] = False
     # Two fronts of one segment (or two nearest-label picks) can meet across a jump; such
     # reassigned pixels go back to -1
     # so that 4-neighbours of one segment are always within ratio * z in 3D.
