@@ -152,13 +152,24 @@ def _column_scale(M: sp.csc_matrix, scale: np.ndarray) -> None:
     M.data *= np.repeat(scale, np.diff(M.indptr))
 
 
+def _column_reduce(M: sp.csc_matrix, ufunc: np.ufunc) -> np.ndarray:
+    """``ufunc`` over each column's stored values (0 for empty columns), via reduceat on
+    the CSC data: a few times faster than scipy's generic axis reductions."""
+    out = np.zeros(M.shape[1])
+    filled = np.diff(M.indptr) > 0
+    if M.nnz:
+        out[filled] = ufunc.reduceat(M.data, M.indptr[:-1][filled])
+    return out
+
+
 def _column_max(M: sp.csc_matrix) -> np.ndarray:
-    return np.asarray(M.max(axis=0).todense()).ravel()
+    """Largest stored value per column (entries are non-negative, so the column max)."""
+    return _column_reduce(M, np.maximum)
 
 
 def _normalise(M: sp.csc_matrix) -> None:
     """Column-stochastic in place (columns that are all zero stay zero)."""
-    s = np.asarray(M.sum(axis=0)).ravel()
+    s = _column_reduce(M, np.add)
     _column_scale(M, np.where(s > 0, 1.0 / np.where(s > 0, s, 1.0), 0.0))
 
 
