@@ -72,7 +72,8 @@ def _key(cfg: config.Config, seed: int, frames: int) -> str:
     h.update(json.dumps({"mapper": to_dict(cfg.mapper), "run": to_dict(cfg.run),
                          "synth": to_dict(cfg.synth), "seed": seed, "frames": frames},
                         sort_keys=True, default=str).encode())
-    h.update(DEFAULT_WEIGHTS.read_bytes())
+    h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
+    h.update(Path(cfg.backbone.checkpoint or DEFAULT_WEIGHTS).read_bytes())
     h.update(bb_train.generator_hash().encode())
     return h.hexdigest()[:12]
 
@@ -106,6 +107,26 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
     np.savez(tmp, **data)
     tmp.replace(path)
     return data
+
+
+def _scene_job(job: tuple) -> int:
+    cfg, seed, frames = job
+    torch.set_num_threads(1)
+    scene(cfg, seed, frames)
+    return seed
+
+
+def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[dict]:
+    """:func:`scene` for several seeds; missing ones rendered in ``workers`` processes."""
+    todo = [s for s in scene_seeds
+            if not (CACHE / f"ncd_s{s}_n{frames}_{_key(cfg, s, frames)}.npz").is_file()]
+    if workers > 1 and len(todo) > 1:
+        import multiprocessing as mp
+        with mp.get_context("fork").Pool(min(workers, len(todo))) as pool:
+            for _ in tqdm(pool.imap_unordered(_scene_job, [(cfg, s, frames) for s in todo]),
+                          total=len(todo), desc="render scenes", unit="scene"):
+                pass
+    return [scene(cfg, s, frames) for s in tqdm(scene_seeds, desc="scenes", unit="scene")]
 
 
 def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
@@ -212,6 +233,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--test-scenes", type=int, default=4)
     ap.add_argument("--tune-scenes", type=int, default=4)
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="processes rendering uncached scenes (one torch thread each)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="override a parameter (YAML value) for every row")
     args = ap.parse_args()
@@ -227,12 +250,13 @@ def main() -> None:
                  "test_seeds": list(seeds.TEST[:n_test])}
 
     t0 = time.perf_counter()
-    test = [scene(base, s, frames) for s in tqdm(seeds.TEST[:n_test], desc="test scenes")]
+    wanted = list(seeds.TEST[:n_test]) + (list(seeds.TUNE[:n_tune]) if args.tune else [])
+    prepare(base, wanted, frames, args.workers)
+    test = prepare(base, seeds.TEST[:n_test], frames, 1)
     res["scene_seconds"] = round(time.perf_counter() - t0, 1)
     res["labelled_frames"] = int(sum(len(s["depth"]) for s in test))
     if args.tune:
-        tune_scenes = [scene(base, s, frames) for s in tqdm(seeds.TUNE[:n_tune],
-                                                             desc="tuning scenes")]
+        tune_scenes = prepare(base, seeds.TUNE[:n_tune], frames, 1)
         chosen, rows = tune(tune_scenes, base)
         res["tune_seeds"] = list(seeds.TUNE[:n_tune])
         res["tune_best"] = chosen["best"]
