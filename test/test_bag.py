@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -288,14 +287,15 @@ def test_writer_rejects_bad_arguments(tmp_path):
 
 
 @pytest.mark.slow
-def test_write_300_frames_is_fast(tmp_path):
+def test_write_and_read_300_frames(tmp_path):
+    """A full-size sequence round-trips through both storages (its speed is
+    bench/synth.py's figure, not a test's)."""
     frames = make_frames(300, w=320, h=240)
     for storage in ("mcap", "sqlite3"):
-        t0 = time.perf_counter()
         bag.write_bag(tmp_path / storage, frames, storage=storage)
-        dt = time.perf_counter() - t0
-        assert dt < 15.0, f"{storage}: writing 300 frames took {dt:.1f} s"
-        assert len(FrameReader(tmp_path / storage)) == 300
+        back = list(FrameReader(tmp_path / storage))
+        assert len(back) == 300
+        assert np.array_equal(back[-1].depth, frames[-1].depth)
     shutil.rmtree(tmp_path)
 
 

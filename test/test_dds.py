@@ -3,7 +3,6 @@ processes, and the nodes pick it up unless the user chose their own."""
 
 from __future__ import annotations
 
-import sys
 import textwrap
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 
 from neurncd_ros.nodes.common import PROFILE_VARS, ensure_dds_profile
 
-from rosutil import REPO, apply_ros_env, ros_env, spin_until, start, stop
+from rosutil import apply_ros_env, ros_env, spin_until, start, stop
 
 pytestmark = pytest.mark.ros
 

@@ -4,7 +4,6 @@ discovery nodes, and labels come out per the topic contract."""
 from __future__ import annotations
 
 import json
-import time
 
 import numpy as np
 import pytest

@@ -558,7 +558,6 @@ class FrameReader:
         self._plan_frames(heads, infos, poses, tfbuf)
 
     def _plan_frames(self, heads: dict, infos: list, poses: list, tfbuf: TfBuffer) -> None:
-        tp, skew = self.topics, self.skew
         infos.sort(key=lambda x: x[0])
         poses.sort(key=lambda x: x[0])
         info_t = np.array([s for s, _ in infos], dtype=np.int64)
