@@ -10,13 +10,16 @@ configuration, backbone weights and generator source), so the discovery stage
 can be scored and tuned many times.
 
 Scenes: tuning on ``seeds.TUNE`` (rooms the backbone never saw), report on
-``seeds.TEST`` (held out from everything). Rows of the report (percent):
+``seeds.TEST`` (held out from everything). Each scene is scored on its own
+(novel ids are per scene, so its novel clusters are matched to its classes) and
+the report gives the mean over scenes. Rows of the report (percent):
 
 - ``neurncd``: the shipped defaults on the rendered embedding and entropy;
 - ``backbone_logits``: the same discovery on the backbone's per-frame logits
   and their entropy (no Embedding-NeRF: what multi-view fusion buys);
 - ``paper_mcl``: the paper's clustering (cosine affinity, inflation 12);
 - ``embedding_only`` / ``entropy_only``: the paper's modulation ablations;
+- ``no_colour_edges``: segmentation without the colour cue (geometry + embedding);
 - ``backbone``: the backbone's argmax alone (knows no novel class);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
@@ -129,45 +132,78 @@ def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[
     return [scene(cfg, s, frames) for s in tqdm(scene_seeds, desc="scenes", unit="scene")]
 
 
-def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
-             keep: list | None = None) -> dict:
-    """Run a fresh Discoverer over every scene's labelled frames; pooled metrics.
+METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
+
+
+def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
+                   keep: list | None = None) -> tuple[dict, list[float]]:
+    """Run a fresh Discoverer over one scene's labelled frames: (metrics, seconds per frame).
 
     ``source``: "rendered" (the Embedding-NeRF's embedding and entropy), "logits"
     (the backbone's per-frame logits and their entropy) or "argmax" (the backbone's
     argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
-    of the first frames for the picture.
+    of a few frames for the picture.
     """
     ev = Evaluator()
     c2i = classes.CHANNEL_TO_ID
     times = []
-    for sc in scenes:
-        d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
-                       mod_cfg=cfg.modulation)
-        h, w = sc["depth"].shape[1:]
-        for i in range(len(sc["depth"])):
-            intr = Intrinsics.from_matrix(sc["K"][i], w, h)
-            logits = sc["logits"][i].astype(np.float32)
-            if source == "rendered":
-                emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
-            else:
-                emb, ent = logits, entropy(logits)
-            t = time.perf_counter()
-            if source == "argmax":
-                lab = c2i[logits.argmax(-1)].astype(np.uint16)
-            else:
-                lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]))
-            times.append(time.perf_counter() - t)
-            ev.update(lab, sc["semantic"][i])
-            if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
-                keep.append((sc["rgb"][i], sc["semantic"][i],
-                             c2i[logits.argmax(-1)].astype(np.uint16), lab, ent))
+    d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
+                   mod_cfg=cfg.modulation)
+    h, w = sc["depth"].shape[1:]
+    for i in range(len(sc["depth"])):
+        intr = Intrinsics.from_matrix(sc["K"][i], w, h)
+        logits = sc["logits"][i].astype(np.float32)
+        if source == "rendered":
+            emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
+        else:
+            emb, ent = logits, entropy(logits)
+        t = time.perf_counter()
+        if source == "argmax":
+            lab = c2i[logits.argmax(-1)].astype(np.uint16)
+        else:
+            lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]),
+                            sc["rgb"][i])
+        times.append(time.perf_counter() - t)
+        ev.update(lab, sc["semantic"][i])
+        if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
+            keep.append((sc["rgb"][i], sc["semantic"][i],
+                         c2i[logits.argmax(-1)].astype(np.uint16), lab, ent))
     r = ev.result()
-    out = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc",
-                             "assigned_miou")}
+    out = {k: r[k] for k in METRICS}
     out["novel_classes_matched"] = len(r["novel_matching"])
-    out["ms_per_frame"] = 1000 * statistics.median(times)
     out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
+    return out, times
+
+
+_SCENES: list[dict] = []  # inherited by forked workers of discover()
+
+
+def _discover_job(job: tuple) -> tuple[dict, list[float]]:
+    i, cfg, source = job
+    torch.set_num_threads(1)
+    return discover_scene(_SCENES[i], cfg, source)
+
+
+def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
+             keep: list | None = None, workers: int = 1) -> dict:
+    """Per-scene metrics (novel ids are per scene, so each scene is matched on its own)
+    and their mean over scenes, as the paper reports per scene and on average."""
+    if workers > 1 and keep is None and len(scenes) > 1:
+        import multiprocessing as mp
+        global _SCENES
+        _SCENES = scenes
+        with mp.get_context("fork").Pool(min(workers, len(scenes))) as pool:
+            per = pool.map(_discover_job, [(i, cfg, source) for i in range(len(scenes))])
+        _SCENES = []
+    else:
+        per = [discover_scene(sc, cfg, source, keep) for sc in scenes]
+    out: dict = {k: float(np.mean([r[k] for r, _ in per])) for k in METRICS}
+    out["per_scene_miou_all"] = [r["miou_all"] for r, _ in per]
+    out["novel_classes_matched"] = int(sum(r["novel_classes_matched"] for r, _ in per))
+    out["ms_per_frame"] = 1000 * statistics.median([t for _, ts in per for t in ts])
+    names = sorted({c for r, _ in per for c in r["iou"]})
+    out["iou"] = {c: float(np.mean([r["iou"][c] for r, _ in per if c in r["iou"]]))
+                  for c in names}
     return out
 
 
@@ -188,14 +224,17 @@ GRID = {
     "discovery.min_cluster_segments": [1, 2, 4],
     "modulation.entropy_interior": [0, 2, 4],
     "segmentation.embedding_edge_threshold": [0.2, 0.3, 0.4],
+    "segmentation.colour_edge_threshold": [12.0, 18.0, 25.0],
+    "discovery.segment_novelty": [False, True],
 }
 
 
-def tune(scenes: list[dict], base: config.Config, rounds: int = 2) -> tuple[dict, list]:
+def tune(scenes: list[dict], base: config.Config, rounds: int = 2, workers: int = 1
+         ) -> tuple[dict, list]:
     """Coordinate search: each parameter in turn over its grid, keep the best mIoU(all)."""
     best = {k: getattr(getattr(base, k.split(".")[0]), k.split(".")[1]) for k in GRID}
     rows = []
-    score = discover(scenes, with_overrides(base, best))["miou_all"]
+    score = discover(scenes, with_overrides(base, best), workers=workers)["miou_all"]
     for rnd in range(rounds):
         changed = False
         for key, values in GRID.items():
@@ -203,7 +242,7 @@ def tune(scenes: list[dict], base: config.Config, rounds: int = 2) -> tuple[dict
                 if v == best[key]:
                     continue
                 trial = {**best, key: v}
-                r = discover(scenes, with_overrides(base, trial))
+                r = discover(scenes, with_overrides(base, trial), workers=workers)
                 rows.append({"round": rnd, "param": key, "value": v, **{
                     k: r[k] for k in ("miou_all", "miou_known", "miou_novel")}})
                 tqdm.write(f"  {key}={v}: all {r['miou_all']:.2f} known {r['miou_known']:.2f}"
@@ -257,7 +296,7 @@ def main() -> None:
     res["labelled_frames"] = int(sum(len(s["depth"]) for s in test))
     if args.tune:
         tune_scenes = prepare(base, seeds.TUNE[:n_tune], frames, 1)
-        chosen, rows = tune(tune_scenes, base)
+        chosen, rows = tune(tune_scenes, base, workers=args.workers)
         res["tune_seeds"] = list(seeds.TUNE[:n_tune])
         res["tune_best"] = chosen["best"]
         res["tune_best_miou_all"] = chosen["miou_all"]
@@ -272,11 +311,14 @@ def main() -> None:
         "paper_mcl": (with_overrides(base, {"mcl.affinity": "cosine", "mcl.inflation": 12.0}),
                       "rendered"),
         "embedding_only": (with_overrides(base, {"modulation.mode": "embedding"}), "rendered"),
+        "no_colour_edges": (with_overrides(base, {"segmentation.colour_edges": False}),
+                            "rendered"),
         "entropy_only": (with_overrides(base, {"modulation.mode": "entropy"}), "rendered"),
         "backbone": (base, "argmax"),
     }
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
-        r = discover(test, cfg, source, keep if name == "neurncd" else None)
+        r = discover(test, cfg, source, keep if name == "neurncd" else None,
+                     workers=1 if name == "neurncd" else args.workers)
         for k, v in r.items():
             if k == "iou":
                 for c, x in v.items():
@@ -289,8 +331,7 @@ def main() -> None:
     (RESULTS / "ncd.json").write_text(json.dumps(res, indent=1, sort_keys=True))
     picture(keep, RESULTS / "ncd.png")
 
-    cols = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou",
-            "novel_classes_matched")
+    cols = METRICS + ("novel_classes_matched",)
     print(f"\n{res['labelled_frames']} labelled frames of test seeds {res['test_seeds']} "
           f"({frames} frames each), percent")
     print(f"{'row':16s} " + " ".join(f"{c[:13]:>13s}" for c in cols))

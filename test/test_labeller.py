@@ -126,6 +126,24 @@ def test_cluster_numbering_does_not_change_ids():
     assert (before >= NOVEL_ID_START).any()
 
 
+def test_segment_novelty_keeps_uncertain_segments_out_of_a_confident_cluster(monkeypatch):
+    """Segments that lean to "wall" but are uncertain (a picture the backbone half
+    calls wall) join the wall cluster; with segment_novelty they form a novel class."""
+    wall_ch = list(CHANNEL_TO_ID).index(CLASS_ID["wall"])
+    monkeypatch.setitem(NOVEL_MIX, "C", {wall_ch: 1.6})
+    layout = [("wall", (r, r + 10, c, c + 40)) for r in (0, 10) for c in (0, 40)]
+    layout += [("C", (22, 34, c, c + 14)) for c in (0, 16, 32, 48)]
+    layout += [("floor", (45, 60, 0, 80))]
+    seg, emb, ent, kinds = _frame(layout, 0)
+    assert ent[kinds == "C"].mean() > 0.6 * np.log(S) > ent[kinds == "wall"].mean()
+    merged = _discoverer().process_segments(seg, emb, ent)
+    split = _discoverer(segment_novelty=True).process_segments(seg, emb, ent)
+    assert _label_of(merged, kinds, "C") == (CLASS_ID["wall"], 1.0)
+    assert _label_of(split, kinds, "C") == (NOVEL_ID_START, 1.0)
+    for kind in ("wall", "floor"):
+        assert _label_of(split, kinds, kind) == (CLASS_ID[kind], 1.0)
+
+
 def test_every_pixel_labelled_and_unsegmented_pixels_use_embedding_argmax():
     d = _discoverer()
     seg, emb, ent, kinds = _frame(LAYOUT, 0)

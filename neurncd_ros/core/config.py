@@ -61,8 +61,9 @@ class DiscoveryNodeConfig:
     """Settings of the discovery node (the science is under `segmentation`, `modulation`,
     `mcl` and `discovery`)."""
 
-    sync_tolerance_ms: float = param(20.0, "max stamp difference between depth, rendered "
-                                     "embedding and entropy", lo=0.0, hi=1000.0, unit="ms")
+    sync_tolerance_ms: float = param(20.0, "max stamp difference between depth, colour, "
+                                     "rendered embedding and entropy", lo=0.0, hi=1000.0,
+                                     unit="ms")
     queue_size: int = param(30, "depth frames kept while waiting for their rendered "
                             "embedding", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated skip warnings",

@@ -134,7 +134,7 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
                                                             total, progress, times):
         t0 = time.perf_counter()
         labels = discoverer.process(frame.depth, frame.intrinsics, rendering["embedding"],
-                                    rendering["entropy"], frame.stamp_ns)
+                                    rendering["entropy"], frame.stamp_ns, frame.rgb)
         t_discovery += time.perf_counter() - t0
         n_labelled += 1
         if frame.semantic is not None:

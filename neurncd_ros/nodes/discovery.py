@@ -1,7 +1,7 @@
 """Discovery node: depth + rendered embedding + entropy in, known and novel labels out.
 
 Pairs each depth frame with the mapper's rendered embedding and entropy of the
-same stamp, runs the core ``Discoverer`` (segmentation, feature modulation,
+same stamp (and the camera's colour image when ``segmentation.colour_edges``), runs the core ``Discoverer`` (segmentation, feature modulation,
 Markov clustering, stable ids) and publishes the label image, its colour
 rendering and the class table (transient local, so late subscribers get it).
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 
 from .. import msgconv
 from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
@@ -36,10 +37,16 @@ def make_node():
             node_cfg, self.topics = self.cfg.discovery_node, self.cfg.topics
             self.throttle = node_cfg.log_throttle_s
             self.discoverer = None
-            self.matcher = StampMatcher(("depth", "embedding", "entropy"),
-                                        int(node_cfg.sync_tolerance_ms * 1e6),
+            # Colour edges need the camera's colour image of the same stamp.
+            self.use_colour = self.cfg.segmentation.colour_edges
+            streams = ("depth", "embedding", "entropy") + (("color",) if self.use_colour
+                                                           else ())
+            self.matcher = StampMatcher(streams, int(node_cfg.sync_tolerance_ms * 1e6),
                                         node_cfg.queue_size)
             q = sensor_qos(node_cfg.queue_size)
+            if self.use_colour:
+                self.create_subscription(Image, self.topics.color,
+                                         lambda m: self.offer("color", m), q)
             self.create_subscription(Image, self.topics.depth,
                                      lambda m: self.offer("depth", m), q)
             self.create_subscription(Image, self.topics.rendered_embedding,
@@ -73,13 +80,18 @@ def make_node():
                                  f"info says {intr.width}x{intr.height}")
             h, w = depth.shape
             emb, ent = fit_to(emb, h, w), fit_to(ent, h, w)
+            rgb = None
+            if self.use_colour:
+                rgb = msgconv.rgb_from_image(group["color"], self.topics.color)
+                if rgb.shape[:2] != (h, w):
+                    rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
             if self.discoverer is None:
                 channel_to_id = classes.channel_to_id(emb.shape[2])
                 self.discoverer = Discoverer(self.cfg.discovery, channel_to_id,
                                              mcl_cfg=self.cfg.mcl,
                                              seg_cfg=self.cfg.segmentation,
                                              mod_cfg=self.cfg.modulation)
-            labels = self.discoverer.process(depth, intr, emb, ent, stamp)
+            labels = self.discoverer.process(depth, intr, emb, ent, stamp, rgb)
             frame_id = depth_msg.header.frame_id
             self.pub_labels.publish(image_msg(labels, "mono16", stamp, frame_id,
                                               self.topics.labels))

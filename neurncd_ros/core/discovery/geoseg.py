@@ -174,6 +174,14 @@ class GeoSegConfig:
                                           "above this is an edge", lo=0.0, hi=1.0)
     entropy_channels: int = param(9, "S used to normalise the entropy when no embedding is "
                                   "given", lo=2, hi=1000)
+    colour_edges: bool = param(True, "cut where the CIELAB colour of neighbouring pixels "
+                               "differs (when a colour image is given)")
+    colour_edge_threshold: float = param(
+        18.0, "CIE76 colour difference (Delta E) of the compared neighbours above this is an "
+        "edge", lo=0.0, hi=200.0)
+    colour_edge_sigma: float = param(2.0, "Gaussian blur (sigma) of the colour image before "
+                                     "the test, against sensor noise", lo=0.0, hi=20.0,
+                                     unit="px")
 
 
 def _odd(size: float) -> int:
@@ -521,8 +529,9 @@ def reassign(labels: np.ndarray, pts: np.ndarray, valid: np.ndarray, ratio: floa
 
 
 def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig,
-             embedding: np.ndarray | None = None, entropy: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             embedding: np.ndarray | None = None, entropy: np.ndarray | None = None,
+             colour: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(inside, valid, points, normals): inside = valid pixels that are no edge."""
     depth = _check_inputs(depth, intr)
     sz = scaled_sizes(cfg, depth.shape[1])
@@ -552,6 +561,8 @@ def edge_map(depth: np.ndarray, intr: Intrinsics, cfg: GeoSegConfig,
     inside = valid & (convex > 0) & (cut == 0)
     if embedding is not None or entropy is not None:
         inside &= ~appearance_edges(embedding, entropy, valid.shape, cfg, sz)
+    if colour is not None and cfg.colour_edges:
+        inside &= ~colour_edges(colour, valid.shape, cfg, sz)
     return inside, valid, pts, normals
 
 
@@ -638,6 +649,31 @@ def appearance_edges(embedding: np.ndarray | None, entropy: np.ndarray | None,
     return edges
 
 
+def colour_edges(colour: np.ndarray, shape: tuple[int, int], cfg: GeoSegConfig,
+                 sz: dict[str, int]) -> np.ndarray:
+    """Colour edges: CIE76 Delta E between the pixels ``embedding_edge_step`` px before
+    and after each pixel above ``colour_edge_threshold``.
+
+    Why: what the backbone calls one class is not one instance. A door is NYU-13
+    "wall", flush with the wall around it and confidently labelled wall, so neither
+    geometry nor the embedding separates them; its colour does. Lab makes the
+    threshold roughly perceptual, so shading on a plain wall stays below it.
+    """
+    colour = np.asarray(colour)
+    if colour.ndim != 3 or colour.shape[:2] != shape or colour.shape[2] != 3:
+        raise ValueError(f"colour must be (H, W, 3) with (H, W) = {shape}, got {colour.shape}")
+    if colour.dtype != np.uint8:
+        raise ValueError(f"colour must be uint8 RGB, got dtype {colour.dtype}")
+    rgb = colour.astype(np.float32) * np.float32(1.0 / 255.0)
+    if cfg.colour_edge_sigma > 0:
+        sigma = cfg.colour_edge_sigma * shape[1] / cfg.reference_width
+        rgb = cv2.GaussianBlur(rgb, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2Lab)
+    diff = _pair_change(lab, sz["embedding_edge_step"],
+                        lambda a, b: np.sqrt(((a - b) ** 2).sum(axis=-1)))
+    return diff > cfg.colour_edge_threshold
+
+
 def _finite_pairs(finite: np.ndarray, reach: int) -> np.ndarray:
     """Pixels with no non-finite pixel within ``reach`` px (their compared pairs are real)."""
     if finite.all():
@@ -648,15 +684,16 @@ def _finite_pairs(finite: np.ndarray, reach: int) -> np.ndarray:
 
 
 def segment_depth(depth: np.ndarray, intrinsics: Intrinsics, cfg: GeoSegConfig = GeoSegConfig(),
-                  embedding: np.ndarray | None = None, entropy: np.ndarray | None = None
-                  ) -> np.ndarray:
+                  embedding: np.ndarray | None = None, entropy: np.ndarray | None = None,
+                  colour: np.ndarray | None = None) -> np.ndarray:
     """Convex segments of a depth image: (H, W) int32 ids 0..n-1, -1 = no segment.
 
     ``depth`` is float metric z-depth, 0 (or non-finite) where unmeasured.
     ``embedding`` (H, W, S) logits and ``entropy`` (H, W), both optional, add
-    appearance edges (:func:`appearance_edges`) to the geometric ones.
+    appearance edges (:func:`appearance_edges`) to the geometric ones; ``colour``
+    (H, W, 3) uint8 RGB, optional, adds colour edges (:func:`colour_edges`).
     """
-    inside, valid, pts, normals = edge_map(depth, intrinsics, cfg, embedding, entropy)
+    inside, valid, pts, normals = edge_map(depth, intrinsics, cfg, embedding, entropy, colour)
     sz = scaled_sizes(cfg, inside.shape[1])
     n, cc, stats, _ = cv2.connectedComponentsWithStats(inside.astype(np.uint8), connectivity=4,
                                                        ltype=cv2.CV_32S)

@@ -70,6 +70,10 @@ class DiscoveryConfig:
                                       lo=1, hi=10000)
     min_cluster_pixels: int = param(500, "a novel cluster needs at least this many pixels",
                                     lo=0, hi=10**9, unit="px")
+    segment_novelty: bool = param(False, "decide uncertainty per segment first: segments "
+                                  "above entropy_threshold leave their clusters and are "
+                                  "clustered among themselves (novel candidates), so a "
+                                  "confident majority cannot absorb them")
     match_overlap: float = param(0.3, "share of shared member segments to keep a novel id",
                                  lo=0.0, hi=1.0)
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
@@ -146,8 +150,11 @@ class Discoverer:
     # ------------------------------------------------------------ main entry
 
     def process(self, depth: np.ndarray, intrinsics: Intrinsics, embedding: np.ndarray,
-                entropy: np.ndarray, stamp_ns: int = 0) -> np.ndarray:
-        """Label one frame: (H, W) uint16 with known ids 1..13 and novel ids >= 100."""
+                entropy: np.ndarray, stamp_ns: int = 0, colour: np.ndarray | None = None
+                ) -> np.ndarray:
+        """Label one frame: (H, W) uint16 with known ids 1..13 and novel ids >= 100.
+
+        ``colour`` (H, W, 3) uint8 RGB, optional, adds geoseg's colour edges."""
         embedding = np.asarray(embedding)
         if embedding.ndim != 3 or embedding.shape[2] != self.S:
             raise ValueError(f"embedding must be (H, W, {self.S}) to match channel_to_id, got "
@@ -155,9 +162,10 @@ class Discoverer:
         if embedding.shape[:2] != np.asarray(depth).shape:
             raise ValueError(f"embedding is {embedding.shape[:2]} but depth is "
                              f"{np.asarray(depth).shape}")
-        # The embedding and entropy also cut segments where the appearance changes
-        # (geoseg's embedding edges): flush pictures, TVs and windows leave the wall.
-        segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy)
+        # The embedding, entropy and colour also cut segments where the appearance
+        # changes (geoseg's appearance and colour edges): flush pictures, TVs, windows
+        # and doors leave the wall.
+        segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
         labels = self.process_segments(segments, embedding, entropy)
         self.last_stamp_ns = int(stamp_ns)
         return labels
@@ -217,7 +225,24 @@ class Discoverer:
         if len(mem) == 0:
             return
         clusters = markov_cluster(mem.desc, self.mcl_cfg) if len(mem) > 1 else np.zeros(1, int)
+        if self.cfg.segment_novelty:
+            clusters = self._split_uncertain(clusters)
         mem.cluster = self.name_clusters(clusters)
+
+    def _split_uncertain(self, clusters: np.ndarray) -> np.ndarray:
+        """Take the segments above the entropy threshold out of their clusters and
+        cluster them among themselves: a confident majority cannot absorb them."""
+        mem = self._mem
+        ent = mem.ent_sum / np.maximum(mem.pixels, 1)
+        unsure = np.flatnonzero(ent > self.cfg.entropy_threshold * np.log(self.S))
+        if unsure.size == 0 or unsure.size == len(mem):
+            return clusters
+        out = np.asarray(clusters, np.int64).copy()
+        sub = (markov_cluster(mem.desc[unsure], self.mcl_cfg) if unsure.size > 1
+               else np.zeros(1, np.int64))
+        out[unsure] = out.max() + 1 + sub
+        _, out = np.unique(out, return_inverse=True)
+        return out.astype(np.int64)
 
     def name_clusters(self, clusters: np.ndarray) -> np.ndarray:
         """Per memory segment label (known id, stable novel id or UNDECIDED) from cluster ids.
