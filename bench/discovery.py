@@ -9,10 +9,11 @@ Writes bench/results/discovery.json (flat figures) and bench/results/geoseg.png
 
 Figures:
 - geoseg_ms_320x240: median segmentation time per frame over 5 held-out synthetic
-  seeds (seeds.TEST[:5], realistic depth noise), with the embedding-edge cue as the node runs
-  it; segment_purity: pixel-weighted share of segment pixels in their segment's
-  majority GT instance, with the cue; segment_purity_geometric_only: without
-  it; segments_per_frame (with the cue);
+  seeds (seeds.TEST[:5], realistic depth noise), with the embedding and colour edge
+  cues as the node runs it; segment_purity: pixel-weighted share of segment pixels
+  in their segment's majority GT instance, with both cues;
+  segment_purity_no_colour: embedding cue only; segment_purity_geometric_only:
+  neither; segments_per_frame (with both cues);
 - mcl_5k_s / mcl_20k_s: markov_cluster (top-30 cosine graph + MCL, inflation 2)
   timed end to end (graph + clustering)
   on noisy 38-d vectors in 12 groups, with the clusters found and adjusted Rand
@@ -80,24 +81,27 @@ def purity_counts(seg: np.ndarray, instance: np.ndarray) -> tuple[float, float]:
 def bench_geoseg(frames: int, step: int, embed) -> dict:
     """Segmentation time, purity and segment count over the GEOSEG_SEEDS; saves the PNG.
 
-    As the node runs it: the embedding and entropy are passed to segment_depth
-    (embedding edges, timed with the rest); segment_purity_geometric_only is the
-    same frames without them.
+    As the node runs it: the embedding, entropy and colour are passed to
+    segment_depth (appearance and colour edges, timed with the rest); the other
+    purities are the same frames with fewer cues.
     """
     cfg = GeoSegConfig()
     times, counts, rows = [], [], []
-    good, total, ggood, gtotal = 0.0, 0.0, 0.0, 0.0
+    good, total, ggood, gtotal, cgood, ctotal = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for seed in tqdm(GEOSEG_SEEDS, desc="geoseg seeds"):
         for k, f in enumerate(frames_of(seed, frames, step)):
             emb, ent = embed(f, k)
             if not times:  # warm-up
-                segment_depth(f.depth, f.intrinsics, cfg, emb, ent)
+                segment_depth(f.depth, f.intrinsics, cfg, emb, ent, f.rgb)
             t = time.perf_counter()
-            seg = segment_depth(f.depth, f.intrinsics, cfg, emb, ent)
+            seg = segment_depth(f.depth, f.intrinsics, cfg, emb, ent, f.rgb)
             times.append(time.perf_counter() - t)
             counts.append(int(seg.max()) + 1)
             g, n = purity_counts(seg, f.instance)
             good, total = good + g, total + n
+            g, n = purity_counts(segment_depth(f.depth, f.intrinsics, cfg, emb, ent),
+                                 f.instance)
+            cgood, ctotal = cgood + g, ctotal + n
             g, n = purity_counts(segment_depth(f.depth, f.intrinsics, cfg), f.instance)
             ggood, gtotal = ggood + g, gtotal + n
             if k == 1 and len(rows) < 3:
@@ -111,6 +115,7 @@ def bench_geoseg(frames: int, step: int, embed) -> dict:
     return {"geoseg_ms_320x240": 1000 * statistics.median(times),
             "geoseg_frames": len(times),
             "segment_purity": good / max(total, 1.0),
+            "segment_purity_no_colour": cgood / max(ctotal, 1.0),
             "segment_purity_geometric_only": ggood / max(gtotal, 1.0),
             "segments_per_frame": float(statistics.median(counts))}
 
@@ -168,8 +173,8 @@ def bench_tuning(embed, frames: int, step: int) -> tuple[dict, list[dict]]:
     for seed in tqdm(TUNE_SEEDS, desc="tuning seeds"):
         dx, dy = [], []
         for i, f in enumerate(frames_of(seed, frames, step)):
-            seg = segment_depth(f.depth, f.intrinsics)
             emb, ent = embed(f, i)
+            seg = segment_depth(f.depth, f.intrinsics, GeoSegConfig(), emb, ent, f.rgb)
             dx.append(segment_descriptors(seg, emb, ent, mod))
             n = int(seg.max()) + 1
             sem = f.semantic.astype(np.int64)
