@@ -220,6 +220,13 @@ class StampMatcher:
         self._pending: dict[str, list[tuple[int, Any]]] = {s: [] for s in slots}
         self.dropped = 0
 
+    def starved(self) -> tuple[str, ...]:
+        """Slots with nothing pending while another slot's queue is full: the topics
+        that are not arriving (or not within the tolerance) while the rest are."""
+        if not any(len(q) >= self.capacity for q in self._pending.values()):
+            return ()
+        return tuple(s for s, q in self._pending.items() if not q)
+
     def add(self, slot: str, stamp_ns: int, value: Any) -> tuple[int, dict[str, Any]] | None:
         if slot not in self._pending:
             raise KeyError(f"unknown slot {slot!r}; slots: {self.slots}")
@@ -271,6 +278,13 @@ class PairedFrames:
     def offer(self, slot: str, msg) -> None:
         match = self.matcher.add(slot, header_ns(msg), msg)
         if match is None:
+            starved = self.matcher.starved()
+            if starved:
+                self.get_logger().warning(
+                    f"waiting for {', '.join(starved)}: nothing pending while other topics "
+                    f"arrive ({self.matcher.dropped} unpaired messages dropped so far; check "
+                    f"the topic names and that stamps agree within the sync tolerance)",
+                    throttle_duration_sec=self.throttle)
             return
         try:
             self.on_frame(*match)
