@@ -13,7 +13,8 @@ Figures:
   cues as the node runs it; segment_purity: pixel-weighted share of segment pixels
   in their segment's majority GT instance, with both cues;
   segment_purity_no_colour: embedding cue only; segment_purity_geometric_only:
-  neither; segments_per_frame (with both cues);
+  neither; per-seed extremes of the purity; segments_per_frame (median, p10, p90,
+  with both cues) and the median segment size in pixels;
 - mcl_5k_s / mcl_20k_s: markov_cluster (top-30 cosine graph + MCL, inflation 2)
   timed end to end (graph + clustering)
   on noisy 38-d vectors in 12 groups, with the clusters found and adjusted Rand
@@ -86,9 +87,10 @@ def bench_geoseg(frames: int, step: int, embed) -> dict:
     purities are the same frames with fewer cues.
     """
     cfg = GeoSegConfig()
-    times, counts, rows = [], [], []
+    times, counts, rows, sizes, per_seed = [], [], [], [], []
     good, total, ggood, gtotal, cgood, ctotal = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for seed in tqdm(GEOSEG_SEEDS, desc="geoseg seeds"):
+        seed_good, seed_total = good, total
         for k, f in enumerate(frames_of(seed, frames, step)):
             emb, ent = embed(f, k)
             if not times:  # warm-up
@@ -97,6 +99,7 @@ def bench_geoseg(frames: int, step: int, embed) -> dict:
             seg = segment_depth(f.depth, f.intrinsics, cfg, emb, ent, f.rgb)
             times.append(time.perf_counter() - t)
             counts.append(int(seg.max()) + 1)
+            sizes.extend(np.bincount(seg[seg >= 0]).tolist())
             g, n = purity_counts(seg, f.instance)
             good, total = good + g, total + n
             g, n = purity_counts(segment_depth(f.depth, f.intrinsics, cfg, emb, ent),
@@ -109,6 +112,7 @@ def bench_geoseg(frames: int, step: int, embed) -> dict:
                 inst = colourise(np.where(f.instance > 0, f.instance % 900 + 100, 0)
                                  .astype(np.uint16))
                 rows.append(np.concatenate([f.rgb, segs, inst], axis=1))
+        per_seed.append((good - seed_good) / max(total - seed_total, 1.0))
     if rows:
         cv2.imwrite(str(RESULTS / "geoseg.png"), cv2.cvtColor(np.concatenate(rows, 0),
                                                               cv2.COLOR_RGB2BGR))
@@ -117,7 +121,12 @@ def bench_geoseg(frames: int, step: int, embed) -> dict:
             "segment_purity": good / max(total, 1.0),
             "segment_purity_no_colour": cgood / max(ctotal, 1.0),
             "segment_purity_geometric_only": ggood / max(gtotal, 1.0),
-            "segments_per_frame": float(statistics.median(counts))}
+            "segment_purity_min_seed": float(min(per_seed)),
+            "segment_purity_max_seed": float(max(per_seed)),
+            "segments_per_frame": float(statistics.median(counts)),
+            "segments_per_frame_p10": float(np.percentile(counts, 10)),
+            "segments_per_frame_p90": float(np.percentile(counts, 90)),
+            "segment_pixels_median": float(statistics.median(sizes))}
 
 
 def groups(n: int, dim: int = 38, k: int = 12, noise: float = 0.6, seed: int = 0):
