@@ -1,9 +1,10 @@
 """Discovery node: depth + rendered embedding + entropy in, known and novel labels out.
 
 Pairs each depth frame with the mapper's rendered embedding and entropy of the
-same stamp (and the camera's colour image when ``segmentation.colour_edges``), runs the core ``Discoverer`` (segmentation, feature modulation,
-Markov clustering, stable ids) and publishes the label image, its colour
-rendering and the class table (transient local, so late subscribers get it).
+same stamp (and the camera's colour image when ``segmentation.colour_edges``),
+runs the core ``Discoverer`` (segmentation, feature modulation, Markov
+clustering, stable ids) and publishes the label image, its colour rendering and
+the class table (transient local, so late subscribers get it).
 """
 
 from __future__ import annotations

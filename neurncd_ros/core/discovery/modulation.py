@@ -140,19 +140,15 @@ def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarr
     mean_logit = np.stack([np.bincount(ids, weights=centred[:, c], minlength=n)
                            for c in range(S)], axis=1)
     hist = np.bincount(ids * S + emb.argmax(axis=1), minlength=n * S).reshape(n, S)
-    hist = hist.astype(np.int64)
-    ent_sum = np.bincount(ids, weights=ent, minlength=n)
-    ent_sq = np.bincount(ids, weights=ent.astype(np.float64) ** 2, minlength=n)
-    ent_n = counts.astype(np.float64)
+    ent_ids, ent_px = ids, ent
     if entropy_interior > 0:
+        # Interior pixels of segments that have an interior, all pixels of the rest.
         core = interior(segments, entropy_interior).ravel()[sel]
-        c_n = np.bincount(ids[core], minlength=n).astype(np.float64)
-        has = c_n > 0
-        ent_sum = np.where(has, np.bincount(ids[core], weights=ent[core], minlength=n),
-                           ent_sum)
-        ent_sq = np.where(has, np.bincount(ids[core], weights=ent[core].astype(np.float64) ** 2,
-                                           minlength=n), ent_sq)
-        ent_n = np.where(has, c_n, ent_n)
+        use = core | (np.bincount(ids[core], minlength=n) == 0)[ids]
+        ent_ids, ent_px = ids[use], ent[use]
+    ent_n = np.bincount(ent_ids, minlength=n).astype(np.float64)
+    ent_sum = np.bincount(ent_ids, weights=ent_px, minlength=n)
+    ent_sq = np.bincount(ent_ids, weights=ent_px.astype(np.float64) ** 2, minlength=n)
     mean_ent = ent_sum / np.maximum(ent_n, 1)
     std_ent = np.sqrt(np.maximum(ent_sq / np.maximum(ent_n, 1) - mean_ent ** 2, 0.0))
     stats = SegmentStats(counts, mean_ent.astype(np.float32), std_ent.astype(np.float32), hist,
