@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.backbone import backbone as bb  # noqa: E402
 from neurncd_ros.core.backbone import train  # noqa: E402
-from neurncd_ros.core.data import seeds  # noqa: E402
+from neurncd_ros.synth import seeds  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 VAL_SEEDS = seeds.BACKBONE_VAL

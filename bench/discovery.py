@@ -49,7 +49,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros.core.classes import colourise  # noqa: E402
-from neurncd_ros.core.data import seeds  # noqa: E402
+from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.geoseg import GeoSegConfig, segment_depth  # noqa: E402
 from neurncd_ros.core.discovery.mcl import MCLConfig, markov_cluster, tune  # noqa: E402
 from neurncd_ros.core.discovery.metrics import adjusted_rand_index  # noqa: E402
@@ -65,7 +65,7 @@ from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 
 def frames_of(seed: int, frames: int, step: int) -> list:
-    from neurncd_ros.core.data.synth import SynthConfig, generate
+    from neurncd_ros.synth.generator import SynthConfig, generate
     return [f for i, f in enumerate(generate(seed, frames, SynthConfig())) if i % step == 0]
 
 

@@ -50,7 +50,7 @@ sys.path.insert(0, str(REPO))
 
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.camera import camera_directions  # noqa: E402
-from neurncd_ros.core.data.synth import SynthConfig, generate  # noqa: E402
+from neurncd_ros.synth.generator import SynthConfig, generate  # noqa: E402
 from neurncd_ros.core.field.mapper import Mapper, MapperConfig  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"

@@ -53,12 +53,14 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from neurncd_ros.core import classes, config, pipeline  # noqa: E402
+from neurncd_ros import config
+from neurncd_ros.core import classes, pipeline  # noqa: E402
 from neurncd_ros.core.backbone import train as bb_train  # noqa: E402
 from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, entropy, \
     load_backbone  # noqa: E402
 from neurncd_ros.core.camera import Intrinsics  # noqa: E402
-from neurncd_ros.core.data import seeds, synth  # noqa: E402
+from neurncd_ros import synth
+from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
 from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402
 from neurncd_ros.core.field.mapper import Mapper  # noqa: E402

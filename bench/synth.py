@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros.core import classes  # noqa: E402
-from neurncd_ros.core.data.synth import SynthConfig, frames_at, generate  # noqa: E402
+from neurncd_ros.synth.generator import SynthConfig, frames_at, generate  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 
-from .core import config as config_mod
+from . import config as config_mod
 from .core.params import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .core.data import synth
+    from . import synth
     from .core.params import build, to_dict
 
     cfg = load_config(args)

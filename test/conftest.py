@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -10,35 +9,24 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _find_real_data() -> Path | None:
-    env = os.environ.get("NEURNCD_REAL_DATA")
-    candidates = [Path(env)] if env else []
-    # A clone sits beside shared/ (CI: fresh clone with shared/ next to it).
-    for base in [REPO, *REPO.parents]:
-        candidates.append(base / "shared" / "data" / "real")
-    for c in candidates:
-        if (c / "README.md").is_file():
-            return c
-    return None
+DATA = REPO / "test" / "data"
+"""Fixtures shipped with the repository (see test/data/README.md for sources and licences)."""
 
 
 @pytest.fixture(scope="session")
 def real_data_dir() -> Path:
-    """Folder of the real RGB-D fixtures (../shared/data/real); skips if absent."""
-    path = _find_real_data()
-    if path is None:
-        pytest.skip("real RGB-D fixtures (shared/data/real) not found beside the repository")
+    """Folder of the small real RGB-D sequences (test/data/real)."""
+    path = DATA / "real"
+    assert (path / "README.md").is_file(), f"{path} is missing: the repository is incomplete"
     return path
 
 
 @pytest.fixture(scope="session")
 def esanet_key_list() -> Path:
-    """The recorded ESANet R34-NBt1D state_dict key list; skips if absent."""
-    path = _find_real_data()
-    f = path.parent / "esanet" / "r34_nbt1d_state_dict.json" if path else None
-    if f is None or not f.is_file():
-        pytest.skip("shared/data/esanet/r34_nbt1d_state_dict.json not found")
-    return f
+    """The recorded ESANet R34-NBt1D state_dict key list (test/data/esanet)."""
+    path = DATA / "esanet" / "r34_nbt1d_state_dict.json"
+    assert path.is_file(), f"{path} is missing: the repository is incomplete"
+    return path
 
 
 def pytest_addoption(parser):
@@ -52,9 +40,11 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
+    """Slow tests are deselected (not skipped) unless --slow: the fast default reports
+    every test it runs as passed or failed, nothing as skipped."""
     if config.getoption("--slow"):
         return
-    skip = pytest.mark.skip(reason="slow: run with --slow (make test-all)")
-    for item in items:
-        if "slow" in item.keywords:
-            item.add_marker(skip)
+    slow = [item for item in items if "slow" in item.keywords]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if "slow" not in item.keywords]

@@ -34,7 +34,7 @@ def default_backbone() -> bb.Backbone:
 
 @pytest.fixture(scope="module")
 def held_out_frames():
-    synth = pytest.importorskip("neurncd_ros.core.data.synth")
+    from neurncd_ros import synth
     return list(synth.generate(HELD_OUT_SEED, 2, synth.SynthConfig()))
 
 
@@ -245,7 +245,7 @@ def test_train_loop_learns_a_toy_task(tmp_path):
 
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
     """Cached frames are reused, but never across a change of the generator's code."""
-    from neurncd_ros.core.data import synth
+    from neurncd_ros import synth
 
     cfg = synth.SynthConfig(width=32, height=24)
     fresh = train.synth_frames(3, 2, tmp_path, cfg)
@@ -280,7 +280,7 @@ def test_record_command_reproduces_the_options():
 
 # ----------------------------------------------------------------------------- esanet
 def test_esanet_checkpoint_loads_through_backbone(tmp_path):
-    esanet = pytest.importorskip("neurncd_ros.core.backbone.esanet")
+    from neurncd_ros.core.backbone import esanet
     torch.manual_seed(0)
     net = esanet.ESANet(37)
     path = tmp_path / "ckpt_sunrgbd.pth"

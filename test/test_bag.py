@@ -12,7 +12,8 @@ import torch
 
 from neurncd_ros.core.camera import Intrinsics, look_at
 from neurncd_ros.core.data import bag
-from neurncd_ros.core.data.bag import BagError, FrameReader, Topics
+from neurncd_ros.core.data.bag import BagError, FrameReader
+from neurncd_ros.core.topics import Topics
 from neurncd_ros.core.frame import Frame
 
 torch.set_num_threads(1)
@@ -318,7 +319,7 @@ def test_missing_pose_interpolated_when_allowed(tmp_path):
 
 
 def test_unsupported_encodings_are_dropped_with_reason(tmp_path):
-    from neurncd_ros.msgconv import image_fields
+    from neurncd_ros.core.msgconv import image_fields
     frames, tp = make_frames(3), Topics()
     items = []
     for i, f in enumerate(frames):

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from neurncd_ros.core import config
+from neurncd_ros import config
 from neurncd_ros.core.params import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -16,11 +16,11 @@ class Block:
                                   'geometry_msgs', 'std_srvs'):
             raise ImportError('blocked for this test: ' + name)
 sys.meta_path.insert(0, Block())
-import neurncd_ros.core as core, neurncd_ros.msgconv
+import neurncd_ros.core as core, neurncd_ros.core.msgconv
 mods = [m.name for m in pkgutil.walk_packages(core.__path__, 'neurncd_ros.core.')]
 for m in mods:
     importlib.import_module(m)
-from neurncd_ros.core import config
+from neurncd_ros import config
 config.default()
 assert not any(k.split('.')[0] == 'rclpy' for k in sys.modules)
 print(len(mods))

@@ -50,7 +50,7 @@ def test_large_best_effort_image_crosses_processes(tmp_path):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
-    from neurncd_ros import msgconv
+    from neurncd_ros.core import msgconv
 
     script = tmp_path / "pub.py"
     script.write_text(PUBLISHER)

@@ -12,7 +12,8 @@ import torch
 
 from neurncd_ros.core import classes
 from neurncd_ros.core.camera import camera_directions, pixel_grid
-from neurncd_ros.core.data import formats, synth
+from neurncd_ros import synth
+from neurncd_ros.core.data import formats
 from neurncd_ros.core.field import losses, renderer, samplers
 from neurncd_ros.core.field.mapper import Mapper, MapperConfig
 from neurncd_ros.core.frame import Frame

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from neurncd_ros.core.camera import Intrinsics, look_at, reproject_depth_error
+from neurncd_ros.core import sync
 from neurncd_ros.core.data import bag, formats
 from neurncd_ros.core.data.formats import FormatError, read_folder
 from neurncd_ros.core.frame import Frame
@@ -242,13 +243,13 @@ def test_pose_at_exact_interpolated_nearest():
     a = pose_from_tq([0, 0, 0], [0, 0, 0, 1])
     b = pose_from_tq([2, 0, 0], [0, 0, np.sin(np.pi / 4), np.cos(np.pi / 4)])  # 90 deg about z
     times = np.array([100, 200], dtype=np.int64)
-    assert formats.pose_at(times, [a, b], 200, 0) is b
-    mid = formats.pose_at(times, [a, b], 150, 0, max_gap_ns=100)
+    assert sync.pose_at(times, [a, b], 200, 0) is b
+    mid = sync.pose_at(times, [a, b], 150, 0, max_gap_ns=100)
     np.testing.assert_allclose(mid[:3, 3], [1, 0, 0], atol=1e-12)
     c = np.cos(np.pi / 4)
     np.testing.assert_allclose(mid[:2, :2], [[c, -c], [c, c]], atol=1e-12)
-    assert formats.pose_at(times, [a, b], 190, 10) is b
+    assert sync.pose_at(times, [a, b], 190, 10) is b
     with pytest.raises(LookupError, match="within"):
-        formats.pose_at(times, [a, b], 150, 10, max_gap_ns=99)
+        sync.pose_at(times, [a, b], 150, 10, max_gap_ns=99)
     with pytest.raises(LookupError, match="invalid sample: broken"):
-        formats.pose_at(times, [a, "broken"], 201, 10)
+        sync.pose_at(times, [a, "broken"], 201, 10)

@@ -108,7 +108,7 @@ def test_bad_inputs_raise_value_error():
 
 @pytest.fixture(scope="module")
 def synth_frames():
-    synth = pytest.importorskip("neurncd_ros.core.data.synth")
+    from neurncd_ros import synth
     out = []
     for noise in ("none", "realistic"):
         cfg = synth.SynthConfig(depth_noise=noise)
@@ -313,8 +313,7 @@ def test_real_kinect_with_appearance_cues_stays_plausible(real_data_dir):
     segmented share of valid pixels 0.71-0.86) and still respect depth jumps."""
     from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, BackboneConfig, entropy, \
         load_backbone
-    if not DEFAULT_WEIGHTS.exists():
-        pytest.skip("no default backbone weights")
+    assert DEFAULT_WEIGHTS.exists(), "the shipped default backbone weights are missing"
     bb = load_backbone(BackboneConfig(num_threads=1))
     for i in (1, 3, 5):
         depth, intr = _kinect(real_data_dir, i, 0.5)

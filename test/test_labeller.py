@@ -232,7 +232,7 @@ def test_interior_entropy_ignores_the_boundary_band():
 
 
 def test_process_end_to_end_on_a_synthetic_frame():
-    synth = pytest.importorskip("neurncd_ros.core.data.synth")
+    from neurncd_ros import synth
     from neurncd_ros.core.discovery.metrics import evaluate
     d = Discoverer(DiscoveryConfig(**STAND_IN), CHANNEL_TO_ID)
     preds, gts = [], []

@@ -5,9 +5,9 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from neurncd_ros import msgconv
+from neurncd_ros.core import msgconv
 from neurncd_ros.core.camera import Intrinsics, look_at
-from neurncd_ros.msgconv import MessageError
+from neurncd_ros.core.msgconv import MessageError
 
 
 def image(arr, encoding, pad=0, big=False):

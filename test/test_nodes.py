@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from neurncd_ros import msgconv
+from neurncd_ros.core import msgconv
 from neurncd_ros.core.camera import Intrinsics
 
 from rosutil import REPO, apply_ros_env, ros_env, spin_until, start, stop

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from neurncd_ros.core import config
+from neurncd_ros import config
 from neurncd_ros.core.params import build
 
 from rosutil import REPO
@@ -16,7 +16,7 @@ from rosutil import REPO
 
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory):
-    from neurncd_ros.core.data import synth
+    from neurncd_ros import synth
     from neurncd_ros.core.data.bag import write_bag
 
     cfg = build(synth.SynthConfig, {"width": 160, "height": 120})
@@ -49,7 +49,7 @@ def test_stream_renderings_labels_every_nth_frame_after_its_training():
     yielded, each rendered only after min_iterations_before_publish iterations on it."""
     from neurncd_ros.core import pipeline
     from neurncd_ros.core.backbone.backbone import load_backbone
-    from neurncd_ros.core.data import synth
+    from neurncd_ros import synth
     from neurncd_ros.core.field.mapper import Mapper
 
     cfg = config.load(None, {"run.warmup_iterations": 5, "run.train_iterations_per_frame": 2,

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from neurncd_ros import msgconv
+from neurncd_ros.core import msgconv
 from neurncd_ros.core import classes
 
 from rosutil import apply_ros_env, ros_env, spin_until, start, stop
@@ -18,7 +18,7 @@ pytestmark = pytest.mark.ros
 
 @pytest.fixture(scope="module")
 def scene_bag(tmp_path_factory):
-    from neurncd_ros.core.data import synth
+    from neurncd_ros import synth
     from neurncd_ros.core.data.bag import write_bag
     from neurncd_ros.core.params import build
 

@@ -11,11 +11,11 @@ from scipy import ndimage
 
 from neurncd_ros.core.camera import backproject, project, reproject_depth_error
 from neurncd_ros.core.classes import CLASS_ID, NUM_CLASSES
-from neurncd_ros.core.data.synth import (SynthConfig, frames_at, generate, intrinsics_of,
+from neurncd_ros.synth.generator import (SynthConfig, frames_at, generate, intrinsics_of,
                                          room_of, trajectory)
-from neurncd_ros.core.data.synth_render import (DISPARITY_STEP, KINECT_BASELINE, KINECT_FX,
+from neurncd_ros.synth.render import (DISPARITY_STEP, KINECT_BASELINE, KINECT_FX,
                                                 SceneArrays, kinect_depth, point_clearance)
-from neurncd_ros.core.data.synth_scene import BOX, CYL
+from neurncd_ros.synth.scene import BOX, CYL
 from neurncd_ros.core.params import build
 
 torch.set_num_threads(1)

@@ -1,7 +1,7 @@
 """Typed, documented parameters shared by every configurable part.
 
 Each core component declares its settings as a frozen dataclass whose fields
-are made with :func:`param`. The configuration schema (``core.config``) is
+are made with :func:`param`. The configuration schema (``neurncd_ros.config``) is
 assembled from these dataclasses, so a parameter's type, default, range and
 one-line doc live next to the code that uses it and nowhere else.
 """

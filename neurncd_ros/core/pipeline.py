@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from . import classes
-from .config import Config
+from ..config import Config
 from .frame import Frame
 
 
@@ -190,7 +190,7 @@ def run_bag(bag: str | Path, cfg: Config, out_dir: str | Path) -> dict[str, Any]
 def demo(cfg: Config, out_dir: str | Path, seed: int = 1001, frames: int = 90
          ) -> dict[str, Any]:
     """``make demo``: a held-out synthetic scene written as a bag, then the whole pipeline."""
-    from .data import synth
+    from .. import synth
     from .data.bag import write_bag
 
     out = Path(out_dir)

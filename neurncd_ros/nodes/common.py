@@ -1,7 +1,7 @@
 """What every node shares: DDS profile, parameters from the schema, QoS, messages.
 
 Kept small on purpose: a node is parameters in, messages converted (with
-``neurncd_ros.msgconv``), core called, messages out.
+``neurncd_ros.core.msgconv``), core called, messages out.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from .. import msgconv
-from ..core import config as config_mod
+from ..core import msgconv
+from .. import config as config_mod
 from ..core.params import ConfigError
 
 PACKAGE = "neurncd_ros"

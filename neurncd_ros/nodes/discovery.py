@@ -13,7 +13,7 @@ import json
 
 import cv2
 
-from .. import msgconv
+from ..core import msgconv
 from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
 from ..core import classes
 from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import threading
 import time
 
-from .. import msgconv
+from ..core import msgconv
 from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
 from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
                      output_qos, run_node, sensor_qos)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 import threading
 
-from .. import msgconv
+from ..core import msgconv
 from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
 from ..core.frame import Frame
 from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,

@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import classes
-from ..data import seeds
+from ...synth import seeds
 from . import small
 
 IGNORE = 255
@@ -65,9 +65,10 @@ def _synth_cfg_dict(cfg) -> dict:
 
 def generator_hash() -> str:
     """Short hash of the synthetic generator's source (part of the cache key)."""
-    data_dir = Path(__file__).resolve().parents[1] / "data"
+    from ... import synth
+
     h = hashlib.sha1()
-    for path in sorted(data_dir.glob("synth*.py")):
+    for path in sorted(Path(synth.__file__).parent.glob("*.py")):
         h.update(path.name.encode())
         h.update(path.read_bytes())
     return h.hexdigest()[:10]
@@ -81,7 +82,7 @@ def synth_frames(seed: int, frames: int, cache_dir: Path | None = DEFAULT_CACHE,
     keyed by seed, frame count, a hash of the synthetic config and a hash of
     the generator's source (:func:`generator_hash`).
     """
-    from ..data import synth
+    from ... import synth
 
     cfg = synth_cfg if synth_cfg is not None else synth.SynthConfig()
     key = hashlib.sha1(json.dumps(_synth_cfg_dict(cfg), sort_keys=True, default=str)
@@ -114,7 +115,7 @@ def training_synth_config(fps: float = 1.0):
     At the default 30 fps a 30-frame run covers one second of walking, i.e.
     nearly the same view 30 times; 1 fps spreads the frames over the room.
     """
-    from ..data import synth
+    from ... import synth
     return synth.SynthConfig(fps=fps)
 
 
@@ -473,7 +474,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-seeds", type=_seed_list,
                         default=list(seeds.BACKBONE_TRAIN),
                         help="synthetic scene seeds to train on (default "
-                        f"{seed_text(seeds.BACKBONE_TRAIN)}, see core/data/seeds.py)")
+                        f"{seed_text(seeds.BACKBONE_TRAIN)}, see neurncd_ros/synth/seeds.py)")
     parser.add_argument("--val-seeds", type=_seed_list, default=list(seeds.BACKBONE_VAL),
                         help="held-out synthetic seeds for validation (default "
                         f"{seed_text(seeds.BACKBONE_VAL)})")

@@ -9,7 +9,7 @@
 - :func:`iter_raw` yields raw CDR messages for the replay node;
   :func:`write_messages` writes arbitrary (topic, type, stamp, msg) items.
 
-All message <-> numpy conversion goes through :mod:`neurncd_ros.msgconv`.
+All message <-> numpy conversion goes through :mod:`neurncd_ros.core.msgconv`.
 Every failure to read a bag (missing, truncated, corrupt) raises
 :class:`BagError` naming the file.
 """
@@ -25,14 +25,15 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from ...msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsics,
+from ..msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsics,
                         depth_fields, depth_from_image, image_fields, image_to_array,
                         matrix_to_pose_fields, ns_to_stamp, pose_to_matrix, rgb_from_image,
                         stamp_to_ns)
 from ..camera import Intrinsics, check_pose, invert_pose
-from .formats import nearest, pose_at
 from ..frame import Frame
 from ..params import param
+from ..sync import nearest, pose_at
+from ..topics import Topics
 
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
@@ -43,30 +44,6 @@ STORAGES = ("mcap", "sqlite3")
 
 class BagError(ValueError):
     """A bag cannot be read or written; the text names the file and the problem."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Topics:
-    """Topic and frame names of the topic contract (every one overridable)."""
-
-    color: str = param("/camera/color/image_raw", "colour image, sensor_msgs/Image rgb8|bgr8")
-    depth: str = param("/camera/depth/image_raw", "depth registered to colour, 16UC1 mm or "
-                       "32FC1 m")
-    camera_info: str = param("/camera/color/camera_info", "sensor_msgs/CameraInfo of colour")
-    pose: str = param("/camera/pose", "geometry_msgs/PoseStamped camera-to-world, OpenCV axes")
-    semantic: str = param("/camera/semantic/image_raw", "ground-truth NYU-13 ids, mono16")
-    instance: str = param("/camera/instance/image_raw", "ground-truth instance ids, mono16")
-    embedding: str = param("/neurncd/embedding", "backbone embedding, 32FC<S>")
-    rendered_embedding: str = param("/neurncd/rendered_embedding", "embedding rendered by "
-                                    "the field, 32FC<S>")
-    entropy: str = param("/neurncd/entropy", "rendered entropy, 32FC1")
-    labels: str = param("/neurncd/labels", "discovered labels, mono16 (novel ids >= 100)")
-    labels_color: str = param("/neurncd/labels_color", "labels coloured with the palette, rgb8")
-    classes: str = param("/neurncd/classes", "class table as JSON (std_msgs/String)")
-    tf: str = param("/tf", "dynamic transforms, tf2_msgs/TFMessage")
-    tf_static: str = param("/tf_static", "static transforms, tf2_msgs/TFMessage")
-    camera_frame: str = param("camera", "frame_id of images and camera info")
-    world_frame: str = param("world", "frame_id of the pose (fixed world frame)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .core.camera import Intrinsics, check_pose, matrix_to_quat, quat_to_matrix
+from .camera import Intrinsics, check_pose, matrix_to_quat, quat_to_matrix
 
 
 class MessageError(ValueError):

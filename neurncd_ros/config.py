@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from .params import ConfigError, ParamSpec, build, param, specs, to_dict
+from .core.params import ConfigError, ParamSpec, build, param, specs, to_dict
 
 
 # ------------------------------------------------------- node / tool sections
@@ -104,10 +104,10 @@ class RunConfig:
 # Section name -> (module, class). Core sections are imported lazily so this
 # module stays cheap to import.
 SECTIONS: dict[str, tuple[str, str]] = {
-    "topics": ("neurncd_ros.core.data.bag", "Topics"),
+    "topics": ("neurncd_ros.core.topics", "Topics"),
     "sync": ("neurncd_ros.core.data.bag", "SyncConfig"),
     "convert": ("neurncd_ros.core.data.formats", "FolderConfig"),
-    "synth": ("neurncd_ros.core.data.synth", "SynthConfig"),
+    "synth": ("neurncd_ros.synth.generator", "SynthConfig"),
     "backbone": ("neurncd_ros.core.backbone.backbone", "BackboneConfig"),
     "mapper": ("neurncd_ros.core.field.mapper", "MapperConfig"),
     "segmentation": ("neurncd_ros.core.discovery.geoseg", "GeoSegConfig"),
@@ -121,7 +121,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "run": (__name__, "RunConfig"),
 }
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "config" / "neurncd.yaml"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "neurncd.yaml"
 
 
 def section_class(name: str) -> type:

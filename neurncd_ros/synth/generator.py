@@ -20,12 +20,12 @@ from typing import Iterator
 
 import numpy as np
 
-from ..camera import Intrinsics, look_at
-from ..frame import Frame
-from ..params import ConfigError, check_value, param, specs
-from .synth_render import SceneArrays, cast, cos_incidence, kinect_depth, point_clearance, \
+from ..core.camera import Intrinsics, look_at
+from ..core.frame import Frame
+from ..core.params import ConfigError, check_value, param, specs
+from .render import SceneArrays, cast, cos_incidence, kinect_depth, point_clearance, \
     render_rgb
-from .synth_scene import Scene, build_room
+from .scene import Scene, build_room
 
 __all__ = ["SynthConfig", "generate", "frames_at", "room_of", "trajectory", "intrinsics_of"]
 

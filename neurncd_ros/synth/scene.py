@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-from ..classes import CLASS_ID
-from .synth_materials import PLAIN, Material, MaterialBook, jitter
+from ..core.classes import CLASS_ID
+from .materials import PLAIN, Material, MaterialBook, jitter
 
 BOX, CYL = 0, 1
 

@@ -12,10 +12,10 @@ import dataclasses
 
 import numpy as np
 
-from ..camera import Intrinsics, camera_directions, check_pose, pixel_grid
-from .synth_materials import (CHECKER, FABRIC, OUTSIDE, PAINTING, PLAIN, PLANKS, SCREEN, SPINE,
+from ..core.camera import Intrinsics, camera_directions, check_pose, pixel_grid
+from .materials import (CHECKER, FABRIC, OUTSIDE, PAINTING, PLAIN, PLANKS, SCREEN, SPINE,
                               STRIPES, WOOD)
-from .synth_scene import BOX, CEILING_INSTANCE, FLOOR_INSTANCE, WALL_INSTANCES, Scene
+from .scene import BOX, CEILING_INSTANCE, FLOOR_INSTANCE, WALL_INSTANCES, Scene
 
 _NEAR = 1e-3
 _HASH = np.random.default_rng(20240607).random(1 << 16).astype(np.float32)
