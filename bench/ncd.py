@@ -56,8 +56,8 @@ sys.path.insert(0, str(REPO))
 from neurncd_ros import config
 from neurncd_ros.core import classes, pipeline  # noqa: E402
 from neurncd_ros.core.backbone import train as bb_train  # noqa: E402
-from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, entropy, \
-    load_backbone  # noqa: E402
+from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402
+from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.core.camera import Intrinsics  # noqa: E402
 from neurncd_ros import synth
 from neurncd_ros.synth import seeds  # noqa: E402

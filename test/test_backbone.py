@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from neurncd_ros.core import classes
+from neurncd_ros.core import classes, uncertainty
 from neurncd_ros.core.backbone import backbone as bb
 from neurncd_ros.core.backbone import small, train
 from neurncd_ros.core.params import ConfigError, build
@@ -145,7 +145,7 @@ def test_esanet_channel_to_id():
 # ----------------------------------------------------------------------------- entropy
 def test_entropy_matches_hand_computation():
     logits = np.array([[[0.0, 0.0, 0.0], [2.0, 1.0, -1.0]]], dtype=np.float32)
-    h = bb.entropy(logits)
+    h = uncertainty.entropy(logits)
     p = np.exp([2.0, 1.0, -1.0]) / np.exp([2.0, 1.0, -1.0]).sum()
     assert h.shape == (1, 2) and h.dtype == np.float32
     assert h[0, 0] == pytest.approx(math.log(3), abs=1e-6)
@@ -157,13 +157,13 @@ def test_entropy_range_and_stability():
     logits = (rng.normal(size=(30, 40, 9)) * 50).astype(np.float32)
     logits[0, 0] = 1e30  # all equal, huge: uniform
     logits[0, 1] = [1e30] + [-1e30] * 8  # one-hot
-    h = bb.entropy(logits)
+    h = uncertainty.entropy(logits)
     assert np.isfinite(h).all()
     assert h.min() >= 0.0 and h.max() <= math.log(9) + 1e-6
     assert h[0, 0] == pytest.approx(math.log(9), abs=1e-5)
     assert h[0, 1] == pytest.approx(0.0, abs=1e-6)
     with pytest.raises(ValueError, match="NaN"):
-        bb.entropy(np.array([[np.nan, 1.0]], np.float32))
+        uncertainty.entropy(np.array([[np.nan, 1.0]], np.float32))
 
 
 # ----------------------------------------------------------------------------- training pieces

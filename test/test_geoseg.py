@@ -120,7 +120,8 @@ def synth_frames():
 def _appearance(f, i: int):
     """Embedding and entropy for a synthetic frame: the default backbone's logits when its
     weights exist, otherwise the ground-truth stand-in (modulation.simulate_embedding)."""
-    from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, entropy
+    from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS
+    from neurncd_ros.core.uncertainty import entropy
     if DEFAULT_WEIGHTS.exists():
         from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
         emb = load_backbone(BackboneConfig(num_threads=1)).predict(f.rgb, f.depth)
@@ -311,8 +312,8 @@ def test_real_kinect_with_appearance_cues_stays_plausible(real_data_dir):
     embedding edges plus real colour edges (textures, shading) keep the segment count
     plausible (measured 21/18/23 with both cues, 24/16/20 with the embedding only;
     segmented share of valid pixels 0.71-0.86) and still respect depth jumps."""
-    from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, BackboneConfig, entropy, \
-        load_backbone
+    from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, BackboneConfig, load_backbone
+    from neurncd_ros.core.uncertainty import entropy
     assert DEFAULT_WEIGHTS.exists(), "the shipped default backbone weights are missing"
     bb = load_backbone(BackboneConfig(num_threads=1))
     for i in (1, 3, 5):

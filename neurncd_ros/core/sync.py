@@ -62,3 +62,150 @@ def pose_at(times: np.ndarray, poses: Sequence[Any], t: int, skew_ns: int,
     if isinstance(poses[k], str):
         raise LookupError(f"invalid sample: {poses[k]}")
     return poses[k]
+
+
+class StampSync:
+    """Groups the messages of several streams by header stamp (no message_filters needed).
+
+    ``add(stream, stamp_ns, value)`` stores a message and returns the groups it
+    completed, oldest first, as ``(stamp_ns, {stream: value})``. A group is one
+    message of every stream whose stamp is within ``tolerance_ns`` of a message of
+    the first stream (the reference, e.g. the depth frame; its stamp is the
+    group's), the nearest one winning. Nothing waits forever and memory stays
+    bounded whatever arrives:
+
+    - a message unmatched for ``horizon_s`` seconds of the clock expires, and
+      messages older than a group's are superseded (they can never pair now);
+    - a stream holds at most ``capacity`` messages (the oldest goes first);
+    - a second message with a stamp already pending in its stream is a duplicate;
+    - a message older than the last group (minus the tolerance) can never be
+      paired any more and is dropped as out of order, unless stamps keep going
+      back (``reset_after`` such messages in a row, e.g. a bag replayed in a loop,
+      or a clock reset): then the pairing restarts on the new timeline.
+
+    Every drop is counted by reason in :attr:`drops`; :meth:`starved` names
+    streams that do not arrive while others do (a wrong topic name or stamps
+    that never agree), which a node reports in a warning.
+    """
+
+    REASONS = ("expired", "superseded", "overflow", "duplicate", "out_of_order")
+
+    def __init__(self, streams: Sequence[str], tolerance_ns: int, horizon_s: float = 2.0,
+                 capacity: int = 64, reset_after: int = 10, clock=None) -> None:
+        import collections
+        import time
+
+        if len(streams) < 1 or len(set(streams)) != len(streams):
+            raise ValueError(f"streams must be distinct names, got {list(streams)}")
+        self.streams = tuple(streams)
+        self.tolerance_ns = int(tolerance_ns)
+        self.horizon_s = float(horizon_s)
+        self.capacity = int(capacity)
+        self.reset_after = int(reset_after)
+        self._clock = clock or time.monotonic
+        # stream -> list of (stamp, arrival time, value), kept sorted by stamp
+        self._pending: dict[str, list[tuple[int, float, Any]]] = {s: [] for s in streams}
+        self.drops: collections.Counter = collections.Counter()
+        self.drops_by_stream: collections.Counter = collections.Counter()
+        self.groups = 0
+        self.resets = 0
+        self.last_stamp: int | None = None
+        self._backwards = 0
+        self._since_group = collections.Counter()
+
+    def _drop(self, stream: str, reason: str, n: int = 1) -> None:
+        if n:
+            self.drops[reason] += n
+            self.drops_by_stream[(stream, reason)] += n
+
+    def pending(self, stream: str | None = None) -> int:
+        """Messages waiting for their partners (in one stream, or in all)."""
+        if stream is not None:
+            return len(self._pending[stream])
+        return sum(len(q) for q in self._pending.values())
+
+    def starved(self) -> tuple[str, ...]:
+        """Streams with nothing received since the last group while another stream has had
+        at least ``capacity`` messages expire or overflow meanwhile."""
+        lost = sum(n for (s, r), n in self._since_group.items() if r in ("expired", "overflow"))
+        if lost < self.capacity:
+            return ()
+        return tuple(s for s in self.streams if not self._since_group[(s, "received")])
+
+    def reset(self) -> None:
+        """Forget everything pending and the timeline (counters are kept)."""
+        for q in self._pending.values():
+            q.clear()
+        self.last_stamp = None
+        self._backwards = 0
+        self._since_group.clear()
+
+    def _expire(self, now: float) -> None:
+        for s, q in self._pending.items():
+            keep = [e for e in q if now - e[1] <= self.horizon_s]
+            if len(keep) != len(q):
+                self._drop(s, "expired", len(q) - len(keep))
+                self._since_group[(s, "expired")] += len(q) - len(keep)
+                q[:] = keep
+
+    def add(self, stream: str, stamp_ns: int, value: Any) -> list[tuple[int, dict[str, Any]]]:
+        if stream not in self._pending:
+            raise KeyError(f"unknown stream {stream!r}; streams: {self.streams}")
+        stamp_ns = int(stamp_ns)
+        now = self._clock()
+        self._expire(now)
+        self._since_group[(stream, "received")] += 1
+        if self.last_stamp is not None and stamp_ns < self.last_stamp - self.tolerance_ns:
+            self._backwards += 1
+            if self._backwards < self.reset_after:
+                self._drop(stream, "out_of_order")
+                return []
+            self.resets += 1
+            self.reset()
+        else:
+            self._backwards = 0
+        queue = self._pending[stream]
+        if any(s == stamp_ns for s, _, _ in queue):
+            self._drop(stream, "duplicate")
+            return []
+        queue.append((stamp_ns, now, value))
+        queue.sort(key=lambda e: e[0])
+        if len(queue) > self.capacity:
+            del queue[0]
+            self._drop(stream, "overflow")
+            self._since_group[(stream, "overflow")] += 1
+        return self._match()
+
+    def _match(self) -> list[tuple[int, dict[str, Any]]]:
+        out = []
+        ref_name = self.streams[0]
+        i = 0
+        while i < len(self._pending[ref_name]):
+            ref_stamp, _, ref_value = self._pending[ref_name][i]
+            picked = {}
+            for s in self.streams[1:]:
+                best = None
+                for j, (t, _, _) in enumerate(self._pending[s]):
+                    d = abs(t - ref_stamp)
+                    if d <= self.tolerance_ns and (best is None or d < best[0]):
+                        best = (d, j)
+                if best is None:
+                    break
+                picked[s] = best[1]
+            else:
+                group = {ref_name: ref_value}
+                # The group and everything older in each stream can never pair again.
+                for s, j in picked.items():
+                    group[s] = self._pending[s][j][2]
+                    self._drop(s, "superseded", j)
+                    del self._pending[s][: j + 1]
+                self._drop(ref_name, "superseded", i)
+                del self._pending[ref_name][: i + 1]
+                self.last_stamp = ref_stamp
+                self.groups += 1
+                self._since_group.clear()
+                out.append((ref_stamp, group))
+                i = 0
+                continue
+            i += 1
+        return out

@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import classes
+from ..engine.records import EmbeddingSpec
 from ..params import param
 
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
@@ -69,27 +70,6 @@ class BackboneConfig:
     num_threads: int = param(1, "torch CPU threads (0 = leave torch's setting); 1 because the "
                              "nodes share the cores: 2 threads against a busy process took "
                              "2.5 s per frame instead of 41 ms", lo=0, hi=256)
-
-
-def entropy(logits: np.ndarray) -> np.ndarray:
-    """Natural-log entropy of softmax(logits) over the last axis, as float32.
-
-    Computed from log-sum-exp with the maximum subtracted, so very large
-    logits neither overflow nor give NaN; the result lies in [0, ln S].
-    """
-    x = np.asarray(logits)
-    if x.ndim < 1 or x.shape[-1] < 1:
-        raise ValueError(f"logits need a non-empty last (channel) axis, got shape {x.shape}")
-    if not np.issubdtype(x.dtype, np.floating):
-        raise ValueError(f"logits must be floating point, got {x.dtype}")
-    x = x.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(x)):
-        raise ValueError("logits contain NaN or inf")
-    z = x - x.max(axis=-1, keepdims=True)
-    lse = np.log(np.exp(z).sum(axis=-1, keepdims=True))
-    p = np.exp(z - lse)
-    h = lse[..., 0] - (p * z).sum(axis=-1)
-    return np.clip(h, 0.0, np.log(x.shape[-1])).astype(np.float32)
 
 
 def check_rgbd(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -147,6 +127,15 @@ class Backbone:
         rgb_t = torch.from_numpy(np.stack(rgb_in)).permute(0, 3, 1, 2).float()
         depth_t = torch.from_numpy(np.stack(depth_in))[:, None]
         return self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
+
+    @property
+    def spec(self) -> EmbeddingSpec:
+        """What the channels of :meth:`embed`'s output mean (travels with the embedding)."""
+        return EmbeddingSpec(tuple(int(i) for i in self.channel_to_id), 0, self.kind)
+
+    def embed(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """One frame -> (H, W, spec.channels) float32 semantic embedding (the logits)."""
+        return self.predict(rgb, depth)
 
     def predict(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """One frame -> (H, W, S) float32 logits at the frame's own size."""

@@ -1,0 +1,137 @@
+"""Health of a stage: counters, rates, problems by kind, state; what /diagnostics reports.
+
+Every stage owns one :class:`Health`. Problems (a malformed message, a frame
+skipped, a topic that never arrives) are counted by kind and logged at most
+once per ``throttle_s`` per kind, each line saying how many of that kind came
+since the last one, so one noisy kind never hides another. A failure (for
+instance the field's training thread dying) puts the stage in the ``error``
+state: it is logged and reported, and the stage stops publishing instead of
+serving stale output. Nodes publish :meth:`snapshot` as a
+diagnostic_msgs/DiagnosticStatus, as ROS 2 drivers do.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Callable
+
+OK, WARN, ERROR = 0, 1, 2
+"""Levels, as diagnostic_msgs/DiagnosticStatus numbers them."""
+
+STATES = ("starting", "waiting", "running", "error", "stopped")
+
+Logger = Callable[[int, str], None]
+"""log(level, text): the node's logger (OK = info, WARN = warning, ERROR = error)."""
+
+
+def _print_log(level: int, text: str) -> None:
+    print(("info", "warning", "error")[level] + ": " + text, flush=True)
+
+
+class Health:
+    """Thread-safe counters, event rates, throttled problem reports and a state."""
+
+    def __init__(self, name: str, log: Logger | None = None, throttle_s: float = 5.0,
+                 window_s: float = 10.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.name = name
+        self._log = log or _print_log
+        self.throttle_s = float(throttle_s)
+        self.window_s = float(window_s)
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.counts: collections.Counter = collections.Counter()
+        self.problems: collections.Counter = collections.Counter()
+        self._events: dict[str, collections.deque] = {}
+        self._last_report: dict[str, float] = {}
+        self._unreported: collections.Counter = collections.Counter()
+        self._last_problem_at = -1e18
+        self.gauges: dict[str, object] = {}
+        self.state = "starting"
+        self.detail = ""
+        self.error: str | None = None
+
+    # ------------------------------------------------------------ counting
+    def count(self, key: str, n: int = 1) -> None:
+        """Count n events of ``key`` (also timed, for :meth:`rate`)."""
+        now = self._clock()
+        with self._lock:
+            self.counts[key] += n
+            q = self._events.setdefault(key, collections.deque())
+            q.append((now, n))
+            while q and now - q[0][0] > self.window_s:
+                q.popleft()
+
+    def rate(self, key: str) -> float:
+        """Events of ``key`` per second over the last ``window_s`` seconds."""
+        now = self._clock()
+        with self._lock:
+            q = self._events.get(key)
+            if not q:
+                return 0.0
+            while q and now - q[0][0] > self.window_s:
+                q.popleft()
+            if not q:
+                return 0.0
+            span = min(self.window_s, max(now - q[0][0], 1e-3))
+            return sum(n for _, n in q) / span if len(q) > 1 else 0.0
+
+    def gauge(self, key: str, value: object) -> None:
+        """A current value reported as it is (queue length, iterations, ...)."""
+        with self._lock:
+            self.gauges[key] = value
+
+    # ------------------------------------------------------------ problems
+    def problem(self, kind: str, message: str, level: int = WARN) -> None:
+        """A problem of ``kind``: counted, logged at most once per throttle_s per kind."""
+        now = self._clock()
+        with self._lock:
+            self.problems[kind] += 1
+            self._last_problem_at = now
+            last = self._last_report.get(kind)
+            if last is not None and now - last < self.throttle_s:
+                self._unreported[kind] += 1
+                return
+            more = self._unreported.pop(kind, 0)
+            self._last_report[kind] = now
+        suffix = f" ({more} more of this kind since the last report)" if more else ""
+        self._log(level, f"{message}{suffix}")
+
+    def fail(self, kind: str, message: str) -> None:
+        """An error that stops the stage's output: state ``error``, logged, reported."""
+        with self._lock:
+            self.state, self.error = "error", f"{kind}: {message}"
+        self.problem(kind, message, ERROR)
+
+    def set_state(self, state: str, detail: str = "") -> None:
+        if state not in STATES:
+            raise ValueError(f"unknown state {state!r}; states: {STATES}")
+        with self._lock:
+            if self.state == "error" and state != "stopped":
+                return  # an error is final until the stage is rebuilt
+            self.state, self.detail = state, detail
+
+    @property
+    def failed(self) -> bool:
+        return self.state == "error"
+
+    # ------------------------------------------------------------ report
+    def snapshot(self, rates: tuple[str, ...] = ()) -> dict:
+        """{"level", "message", "values"}: values are strings, as DiagnosticStatus wants."""
+        now = self._clock()
+        values = {f"{k}_hz": f"{self.rate(k):.2f}" for k in rates}
+        with self._lock:
+            values.update({k: str(v) for k, v in sorted(self.counts.items())})
+            values.update({f"problem.{k}": str(v) for k, v in sorted(self.problems.items())})
+            values.update({k: str(v) for k, v in sorted(self.gauges.items())})
+            values["state"] = self.state
+            if self.state == "error":
+                level, message = ERROR, self.error or "error"
+            elif now - self._last_problem_at <= self.window_s:
+                worst = max(self.problems, key=lambda k: self._last_report.get(k, -1e18))
+                level, message = WARN, f"{self.state}; recent problem: {worst}"
+            else:
+                level = OK
+                message = self.state + (f": {self.detail}" if self.detail else "")
+        return {"level": level, "message": message, "values": values}

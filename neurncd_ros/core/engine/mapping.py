@@ -1,0 +1,386 @@
+"""Mapper stage: frames with their embedding in, keyframes to the field, views out.
+
+Which views are rendered, in this order (``next_view``):
+
+1. every keyframe the field admits (never dropped: a keyframe's view is
+   rendered and published with its own colour, depth and intrinsics, so
+   discovery always has what it needs, however late it is);
+2. otherwise the newest frame: a frame that arrives before the previous one
+   was rendered replaces it (counted ``skipped_newer``), and a frame that waited
+   longer than ``stale_after_s`` is dropped (``skipped_stale``). Frames that
+   are not rendered are not labelled; the count is in the diagnostics.
+
+A view is rendered at the frame's pose with its measured depth (depth-guided
+samples) at ``render_scale``. Where the field has not learnt the scene yet,
+it would render noise, and noise has high entropy, i.e. looks novel. So the
+view blends the field with the frame's own backbone embedding by *coverage*:
+the sum, over the keyframes that see a pixel's 3D point (projection and depth
+test), of their maturity (training iterations since admission /
+``mature_iterations``, at most 1); at ``full_coverage`` the field alone is
+used. The first views of a new scene are therefore the backbone's, and the
+field takes over where it has been trained.
+
+Flow control: at most ``max_in_flight`` views are published and not yet
+labelled (the node sees labels come back on /neurncd/labels); the renderer
+waits instead of flooding a slower discovery, so latency stays bounded and
+keyframes queue here, where they are held anyway.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import dataclasses
+import json
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from ..camera import Intrinsics, backproject, project
+from ..frame import Frame
+from ..params import param
+from ..sync import StampSync
+from .health import Health
+from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
+
+
+@dataclasses.dataclass(frozen=True)
+class MapperNodeConfig:
+    """The mapper stage: pairing, the field's keyframes, which views to render and how
+    (the field itself is under `mapper`)."""
+
+    map_path: str = param("", "map file: loaded at start if it exists, saved every "
+                          "save_period_s and at shutdown ('' = none)")
+    save_period_s: float = param(30.0, "save the map this often while running, so a killed "
+                                 "mapper restarts from it (0 = only at shutdown)", lo=0.0,
+                                 hi=86400.0, unit="s")
+    render_scale: float = param(0.5, "rendered view size relative to the depth frame "
+                                "(discovery resizes it back; rendering cost grows with the "
+                                "pixel count)", lo=0.1, hi=1.0)
+    max_in_flight: int = param(2, "views published and not yet labelled before the "
+                               "renderer waits for discovery", lo=1, hi=100)
+    in_flight_timeout_s: float = param(5.0, "a view not labelled within this is no longer "
+                                       "waited for (discovery slow, restarted or absent)",
+                                       lo=0.1, hi=600.0, unit="s")
+    stale_after_s: float = param(1.0, "a non-keyframe frame not rendered within this of its "
+                                 "arrival is dropped", lo=0.01, hi=600.0, unit="s")
+    fallback: str = param("backbone", "where the field has not learnt a point yet: blend in "
+                          "the frame's backbone embedding by coverage ('backbone'), or render "
+                          "the field everywhere ('none')", choices=("backbone", "none"))
+    mature_iterations: int = param(100, "training iterations after which a keyframe counts "
+                                   "fully towards the coverage of the points it sees",
+                                   lo=1, hi=10 ** 7)
+    full_coverage: float = param(1.0, "coverage at which a pixel is taken from the field "
+                                 "alone (sum of the maturities of the keyframes seeing it)",
+                                 lo=0.01, hi=100.0)
+    coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
+                                    lo=1, hi=4096)
+    coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
+                                            "there agrees within this plus 3 % of the depth",
+                                            lo=0.001, hi=1.0, unit="m")
+    max_queued_keyframes: int = param(64, "keyframe views waiting to be rendered at most "
+                                      "(beyond, the oldest is dropped with a warning)",
+                                      lo=1, hi=10000)
+    sync_tolerance_ms: float = param(20.0, "max stamp difference between colour, depth, pose "
+                                     "and embedding", lo=0.0, hi=1000.0, unit="ms")
+    sync_horizon_s: float = param(2.0, "how long a colour, depth or pose waits for its "
+                                  "embedding (the embedding stage skips most frames)",
+                                  lo=0.01, hi=600.0, unit="s")
+    queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
+    log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
+                                  "problem", lo=0.0, hi=3600.0, unit="s")
+
+
+@dataclasses.dataclass
+class ViewJob:
+    """A frame waiting to be rendered."""
+
+    frame: Frame
+    embedding: EmbeddingRecord
+    keyframe: bool
+    enqueued: float
+
+
+def resize_to(arr: np.ndarray, height: int, width: int,
+              interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
+    """Resize an (H, W) or (H, W, C) image to height x width, channels kept."""
+    if arr.shape[:2] == (height, width):
+        return arr
+    out = cv2.resize(arr, (width, height), interpolation=interpolation)
+    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
+
+
+def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
+             tolerance: float) -> np.ndarray:
+    """Per point, the sum of the maturities of the keyframes that see it.
+
+    A keyframe sees a world point if it projects into its image in front of
+    the camera and the keyframe's measured depth there agrees (within
+    ``tolerance`` + 3 % of the depth): visible, not occluded.
+    """
+    cov = np.zeros(len(points))
+    for kf, m in zip(keyframes, maturity):
+        if m <= 0:
+            continue
+        u, v, z = project(points, kf.intrinsics, kf.pose)
+        ui = np.floor(u + 0.5).astype(np.int64)
+        vi = np.floor(v + 0.5).astype(np.int64)
+        h, w = kf.depth.shape
+        ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        zk = np.zeros(len(points), np.float32)
+        zk[ok] = kf.depth[vi[ok], ui[ok]]
+        seen = ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
+        cov += m * seen
+    return cov
+
+
+class MapperStage:
+    """Pairs frames with their embedding, feeds the field, renders views newest first."""
+
+    STREAMS = ("embedding", "color", "depth", "pose")
+
+    def __init__(self, cfg: MapperNodeConfig, make_mapper: Callable[[int], Any],
+                 health: Health | None = None, online: bool = True,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg = cfg
+        self._make_mapper = make_mapper
+        self.online = online
+        self._clock = clock
+        self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
+        self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
+                              cfg.sync_horizon_s, capacity=max(4, cfg.queue_size), clock=clock)
+        self.mapper = None
+        self.spec: EmbeddingSpec | None = None
+        self.intrinsics: Intrinsics | None = None
+        self._lock = threading.Lock()
+        self._keyframe_jobs: collections.deque[ViewJob] = collections.deque()
+        self._latest: ViewJob | None = None
+        self._in_flight: dict[int, float] = {}
+        self.keyframe_stamps: list[int] = []
+        self.health.set_state("waiting", "no frame with an embedding yet")
+
+    # ------------------------------------------------------------ the field
+    def _ensure_mapper(self, spec: EmbeddingSpec):
+        if self.mapper is None:
+            self.mapper = self._make_mapper(spec.channels)
+            self.spec = spec
+            if self.online:
+                self.mapper.start()
+        elif spec != self.spec:
+            raise ValueError(f"the embedding's spec {spec.to_json()} differs from the map's "
+                             f"{self.spec.to_json() if self.spec else None}")
+        return self.mapper
+
+    def check_training(self) -> bool:
+        """False (and the stage in error) if the field's training thread has died."""
+        m = self.mapper
+        if self.health.failed:
+            return False
+        if self.online and m is not None and not m.running:
+            err = m.last_error
+            self.health.fail("training", "the field's training thread stopped: "
+                             f"{err!r}" if err else "the field's training thread stopped")
+            return False
+        return True
+
+    def load(self, path: str | Path, load_mapper: Callable[[str], Any]) -> None:
+        """Restore a map saved by :meth:`save` (the field and its embedding spec)."""
+        path = Path(path)
+        spec_file = path.with_name(path.name + ".spec.json")
+        if not spec_file.is_file():
+            raise ValueError(f"{spec_file} is missing: {path} was not saved by the mapper")
+        self.spec = EmbeddingSpec.from_json(spec_file.read_text())
+        self.mapper = load_mapper(str(path))
+        if self.mapper.channels != self.spec.channels:
+            raise ValueError(f"{path} has {self.mapper.channels} channels, its spec "
+                             f"{self.spec.channels}")
+        if self.online:
+            self.mapper.start()
+
+    def save(self, path: str | Path) -> bool:
+        """Save the map atomically (a crash mid-save leaves the previous file); False if
+        there is nothing to save yet."""
+        if self.mapper is None or self.spec is None:
+            return False
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        self.mapper.save(tmp)
+        spec_tmp = path.with_name(path.name + ".spec.json.tmp")
+        spec_tmp.write_text(self.spec.to_json())
+        os.replace(spec_tmp, path.with_name(path.name + ".spec.json"))
+        os.replace(tmp, path)
+        self.health.count("map_saves")
+        return True
+
+    def stop(self) -> None:
+        if self.mapper is not None:
+            self.mapper.stop()
+
+    # ------------------------------------------------------------ online input
+    def offer_info(self, intrinsics: Intrinsics) -> None:
+        if self.intrinsics is not None and intrinsics != self.intrinsics:
+            self.health.problem("camera_info_changed", f"camera info changed from "
+                                f"{self.intrinsics} to {intrinsics}: new frames use it")
+        self.intrinsics = intrinsics
+
+    def offer(self, stream: str, stamp_ns: int, value: Any) -> bool:
+        """One input message (EmbeddingRecord, rgb, depth or 4x4 pose); True when it
+        completed a frame that was admitted and queued for rendering."""
+        with self._lock:
+            groups = self.sync.add(stream, stamp_ns, value)
+        starved = self.sync.starved()
+        if starved:
+            self.health.problem("starved", f"waiting for {', '.join(starved)}: nothing "
+                                "arrives there while the other inputs do (check the topic "
+                                "names, that the embedding node runs, and that stamps agree "
+                                f"within {self.cfg.sync_tolerance_ms:g} ms)")
+        queued = False
+        for stamp, g in groups:
+            self.health.count("frames_paired")
+            intr = self.intrinsics
+            if intr is None:
+                self.health.problem("no_camera_info", f"frame {stamp} skipped: no camera "
+                                    "info received yet")
+                continue
+            try:
+                frame = Frame(stamp, g["color"], g["depth"], g["pose"], intr).validate()
+            except ValueError as err:
+                self.health.problem("frame_mismatch", f"frame {stamp} skipped: {err}")
+                continue
+            queued |= self.admit(frame, g["embedding"]) is not None
+        return queued
+
+    # ------------------------------------------------------------ keyframes
+    def admit(self, frame: Frame, record: EmbeddingRecord) -> ViewJob | None:
+        """Offer a complete frame to the field and queue it for rendering; the job, or
+        None if the frame was refused (the reason is reported)."""
+        if not self.check_training():
+            return None
+        try:
+            mapper = self._ensure_mapper(record.spec)
+            keyframe = mapper.add_keyframe(frame, record.embedding)
+        except ValueError as err:
+            self.health.problem("frame_refused", f"frame {frame.stamp_ns} skipped: {err}")
+            return None
+        job = ViewJob(frame, record, keyframe, self._clock())
+        with self._lock:
+            if keyframe:
+                self.keyframe_stamps.append(frame.stamp_ns)
+                self.health.count("keyframes")
+                self._keyframe_jobs.append(job)
+                if len(self._keyframe_jobs) > self.cfg.max_queued_keyframes:
+                    old = self._keyframe_jobs.popleft()
+                    self.health.problem("keyframes_dropped", f"keyframe {old.frame.stamp_ns} "
+                                        "not rendered: more than max_queued_keyframes wait")
+            else:
+                if self._latest is not None:
+                    self.health.count("skipped_newer")
+                self._latest = job
+        self.health.set_state("running")
+        return job
+
+    # ------------------------------------------------------------ which view next
+    def next_view(self) -> ViewJob | None:
+        """The next frame to render, or None (nothing waiting, or discovery busy)."""
+        now = self._clock()
+        with self._lock:
+            for stamp, t in list(self._in_flight.items()):
+                if now - t > self.cfg.in_flight_timeout_s:
+                    del self._in_flight[stamp]
+                    self.health.count("in_flight_timeouts")
+            if len(self._in_flight) >= self.cfg.max_in_flight:
+                return None
+            if self._keyframe_jobs:
+                job = self._keyframe_jobs.popleft()
+            elif self._latest is not None:
+                job, self._latest = self._latest, None
+                if now - job.enqueued > self.cfg.stale_after_s:
+                    self.health.count("skipped_stale")
+                    return None
+            else:
+                return None
+            self._in_flight[job.frame.stamp_ns] = now
+            return job
+
+    def labelled(self, stamp_ns: int) -> None:
+        """Discovery has labelled the view of this stamp (frees an in-flight slot)."""
+        with self._lock:
+            self._in_flight.pop(int(stamp_ns), None)
+
+    def release(self, job: ViewJob) -> None:
+        """A view that will not be published (render failed): free its slot."""
+        self.labelled(job.frame.stamp_ns)
+
+    @property
+    def pending(self) -> int:
+        """Views waiting to be rendered or labelled (0 = drained)."""
+        with self._lock:
+            return len(self._keyframe_jobs) + (self._latest is not None) + len(self._in_flight)
+
+    # ------------------------------------------------------------ rendering
+    def field_weight(self, frame: Frame, height: int, width: int) -> np.ndarray:
+        """(height, width) weight of the field against the backbone (see module doc)."""
+        mapper = self.mapper
+        kfs = [k for k in mapper.buffer.keyframes() if k.stamp_ns != frame.stamp_ns]
+        if not kfs:
+            return np.zeros((height, width), np.float32)
+        maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
+                             for k in kfs])
+        if not np.any(maturity > 0):
+            return np.zeros((height, width), np.float32)
+        poses = np.stack([k.pose for k in kfs])
+        gap = np.linalg.norm(poses[:, :3, 3] - frame.pose[:3, 3], axis=1)
+        gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
+        order = np.argsort(gap)[: self.cfg.coverage_keyframes]
+        intr = frame.intrinsics.scaled(width, height)
+        depth = resize_to(frame.depth, height, width, cv2.INTER_NEAREST)
+        pts, mask = backproject(depth, intr, frame.pose)
+        cov = coverage(pts, [kfs[i] for i in order], maturity[order],
+                       self.cfg.coverage_depth_tolerance)
+        w = np.clip(cov / self.cfg.full_coverage, 0.0, 1.0).astype(np.float32)
+        out = np.full((height, width), float(w.mean()) if w.size else 0.0, np.float32)
+        out[mask] = w
+        return out
+
+    def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
+        """Render the job's frame at its pose and measured depth; blend by coverage."""
+        from ..uncertainty import entropy
+
+        if not self.check_training():
+            raise RuntimeError(self.health.error or "the mapper stage has failed")
+        f, mapper, spec = job.frame, self.mapper, job.embedding.spec
+        s = self.cfg.render_scale
+        h, w = max(1, round(f.intrinsics.height * s)), max(1, round(f.intrinsics.width * s))
+        backbone = resize_to(job.embedding.embedding.astype(np.float32), h, w)
+        weight = (self.field_weight(f, h, w) if self.cfg.fallback == "backbone"
+                  else np.ones((h, w), np.float32))
+        iterations = mapper.iterations
+        if float(weight.max()) > 0.0:
+            paused = mapper.paused() if hasattr(mapper, "paused") else contextlib.nullcontext()
+            with paused:
+                out = mapper.render(f.pose, f.intrinsics, h, w, depth=f.depth,
+                                    **({"cancel": cancel} if cancel is not None else {}))
+            emb = weight[..., None] * out["embedding"] + (1.0 - weight[..., None]) * backbone
+        else:  # nothing learnt yet anywhere in view: the backbone's embedding as it is
+            emb = backbone
+        emb = np.ascontiguousarray(emb, np.float32)
+        ent = entropy(emb[..., : spec.logit_channels])
+        self.health.count("views")
+        self.health.count("views_keyframe" if job.keyframe else "views_frame")
+        self.health.gauge("iterations", iterations)
+        return ViewRecord(f, emb, ent, spec, job.keyframe, float(weight.mean()), iterations)
+
+    def summary(self) -> str:
+        c = self.health.counts
+        it = self.mapper.iterations if self.mapper is not None else 0
+        return (f"frames paired {c['frames_paired']}, keyframes {c['keyframes']}, views "
+                f"rendered {c['views']} ({c['views_keyframe']} keyframes), frames not "
+                f"rendered {c['skipped_newer'] + c['skipped_stale']} (a newer frame first "
+                f"{c['skipped_newer']}, stale {c['skipped_stale']}), iterations {it}, "
+                f"unpaired inputs {json.dumps(dict(self.sync.drops))}")

@@ -1,0 +1,55 @@
+"""The one softmax and the one entropy, for numpy arrays and torch tensors alike.
+
+The entropy of the softmax of an embedding's logits is the uncertainty the
+paper fuses in the field and the discovery thresholds: natural log, in
+[0, ln S], computed from log-sum-exp with the maximum subtracted so very
+large logits neither overflow nor give NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+
+def _is_torch(x: Any) -> bool:
+    return type(x).__module__.startswith("torch")
+
+
+def softmax(logits: Any, axis: int = -1) -> Any:
+    """softmax over ``axis``: float32 numpy array in, float32 out; a tensor gives a tensor."""
+    if _is_torch(logits):
+        import torch
+        return torch.softmax(logits, dim=axis)
+    z = np.asarray(logits, dtype=np.float32)
+    z = z - z.max(axis=axis, keepdims=True)
+    e = np.exp(z)
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def entropy(logits: Any) -> Any:
+    """Natural-log entropy of softmax(logits) over the last axis, clipped to [0, ln S].
+
+    numpy input: float32 result, ValueError on NaN/inf or a non-float array;
+    torch input: a differentiable tensor of the same dtype.
+    """
+    if _is_torch(logits):
+        import torch
+        log_p = torch.log_softmax(logits, dim=-1)
+        h = -(log_p.exp() * log_p).sum(dim=-1)
+        return h.clamp(0.0, math.log(logits.shape[-1]))
+    x = np.asarray(logits)
+    if x.ndim < 1 or x.shape[-1] < 1:
+        raise ValueError(f"logits need a non-empty last (channel) axis, got shape {x.shape}")
+    if not np.issubdtype(x.dtype, np.floating):
+        raise ValueError(f"logits must be floating point, got {x.dtype}")
+    x = x.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(x)):
+        raise ValueError("logits contain NaN or inf")
+    z = x - x.max(axis=-1, keepdims=True)
+    lse = np.log(np.exp(z).sum(axis=-1, keepdims=True))
+    p = np.exp(z - lse)
+    h = lse[..., 0] - (p * z).sum(axis=-1)
+    return np.clip(h, 0.0, np.log(x.shape[-1])).astype(np.float32)
