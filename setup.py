@@ -16,6 +16,7 @@ RUNTIME_DEPENDENCIES = {
     "geometry_msgs": "ros-jazzy-geometry-msgs",
     "std_msgs": "ros-jazzy-std-msgs",
     "std_srvs": "ros-jazzy-std-srvs",
+    "diagnostic_msgs": "ros-jazzy-diagnostic-msgs",
     "python3-numpy": "numpy",
     "python3-scipy": "scipy",
     "python3-opencv": "opencv-python-headless",

@@ -1,13 +1,15 @@
 """End-to-end novel class discovery: backbone -> Embedding-NeRF -> discovery, scored.
 
 Each synthetic scene (``--frames`` frames at 320x240, 30 Hz, Kinect-like depth)
-goes through the offline pipeline exactly as ``neurncd run`` does
-(``pipeline.stream_renderings``: the default backbone, the fast mapper with the
-run.* schedule, labelled frames rendered with their depth). The renderings
-(rendered embedding + entropy) and the backbone's own logits of the labelled
-frames are cached (npz under /tmp, keyed by seed, frame count, mapper and run
-configuration, backbone weights and generator source), so the discovery stage
-can be scored and tuned many times.
+goes through the online engine offline exactly as ``neurncd run`` does
+(``core.engine.offline.OfflineEngine``: the embedding stage's rate gate, the
+field's keyframes, every keyframe and ``run.view_rate_hz`` other frames
+rendered at their pose and depth with the coverage blend, the ``run.*``
+training schedule), i.e. what the live graph publishes. The views (rendered
+embedding + entropy) and the backbone's own logits of the labelled frames are
+cached (npz under /tmp, keyed by seed, frame count, the engine's configuration,
+backbone weights and generator source), so the discovery stage can be scored
+and tuned many times.
 
 Scenes: tuning on ``seeds.TUNE`` (rooms the backbone never saw), report on
 ``seeds.TEST`` (held out from everything). Each scene is scored on its own
@@ -54,7 +56,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros import config
-from neurncd_ros.core import classes, pipeline  # noqa: E402
+from neurncd_ros.core import classes  # noqa: E402
+from neurncd_ros.core.engine.mapping import resize_to  # noqa: E402
+from neurncd_ros.core.engine.offline import OfflineEngine  # noqa: E402
 from neurncd_ros.core.backbone import train as bb_train  # noqa: E402
 from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
@@ -63,7 +67,6 @@ from neurncd_ros import synth
 from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
 from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402
-from neurncd_ros.core.field.mapper import Mapper  # noqa: E402
 from neurncd_ros.core.params import to_dict  # noqa: E402
 
 from _common import commit  # noqa: E402  (bench/ is on sys.path)
@@ -74,9 +77,9 @@ CACHE = Path(os.environ.get("NEURNCD_NCD_CACHE", "/tmp/neurncd_ncd_cache"))
 
 def _key(cfg: config.Config, seed: int, frames: int) -> str:
     h = hashlib.sha1()
-    h.update(json.dumps({"mapper": to_dict(cfg.mapper), "run": to_dict(cfg.run),
-                         "synth": to_dict(cfg.synth), "seed": seed, "frames": frames},
-                        sort_keys=True, default=str).encode())
+    h.update(json.dumps({**{k: to_dict(getattr(cfg, k)) for k in (
+        "mapper", "run", "synth", "embedding_node", "mapper_node")},
+        "seed": seed, "frames": frames}, sort_keys=True, default=str).encode())
     h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
     h.update(Path(cfg.backbone.checkpoint or DEFAULT_WEIGHTS).read_bytes())
     h.update(bb_train.generator_hash().encode())
@@ -90,22 +93,22 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
     if path.is_file():
         with np.load(path) as z:
             return {k: z[k] for k in z.files}
-    torch.manual_seed(0)
-    backbone = load_backbone(cfg.backbone)
-    mapper = Mapper(cfg.mapper, backbone.channels)
+    engine = OfflineEngine(cfg, load_backbone(cfg.backbone))
     rows: dict[str, list] = {k: [] for k in ("rgb", "depth", "K", "embedding", "entropy",
-                                             "logits", "semantic", "stamp")}
+                                             "logits", "semantic", "stamp", "keyframe")}
     stream = synth.generate(seed, frames, cfg.synth)
-    for f, _, r in pipeline.stream_renderings(stream, cfg, backbone, mapper, total=frames,
-                                              progress=False):
+    for o in engine.run(stream, total=frames, progress=False):
+        f, v = o.frame, o.view
+        h, w = f.depth.shape
         rows["rgb"].append(f.rgb)
         rows["depth"].append(f.depth)
         rows["K"].append(f.intrinsics.K)
-        rows["embedding"].append(r["embedding"].astype(np.float16))
-        rows["entropy"].append(r["entropy"])
-        rows["logits"].append(backbone.predict(f.rgb, f.depth).astype(np.float16))
+        rows["embedding"].append(resize_to(v.embedding, h, w).astype(np.float16))
+        rows["entropy"].append(resize_to(v.entropy, h, w))
+        rows["logits"].append(resize_to(o.embedding.logits, h, w).astype(np.float16))
         rows["semantic"].append(f.semantic)
         rows["stamp"].append(f.stamp_ns)
+        rows["keyframe"].append(v.keyframe)
     data = {k: np.stack(v) for k, v in rows.items()}
     CACHE.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")

@@ -29,76 +29,24 @@ from .core.params import ConfigError, ParamSpec, build, param, specs, to_dict
 # ------------------------------------------------------- node / tool sections
 
 @dataclasses.dataclass(frozen=True)
-class EmbeddingNodeConfig:
-    """Settings of the embedding node (the backbone itself is under `backbone`)."""
-
-    sync_tolerance_ms: float = param(5.0, "max stamp difference to pair colour and depth",
-                                     lo=0.0, hi=1000.0, unit="ms")
-    queue_size: int = param(5, "subscription depth; older frames are dropped", lo=1, hi=100)
-    log_throttle_s: float = param(5.0, "min seconds between repeated skip warnings",
-                                  lo=0.0, hi=3600.0, unit="s")
-
-
-@dataclasses.dataclass(frozen=True)
-class MapperNodeConfig:
-    """Settings of the mapper node (the field itself is under `mapper`)."""
-
-    map_path: str = param("", "map file to load at start and save on shutdown ('' = none)")
-    publish_period_s: float = param(0.2, "how often ready keyframes are rendered and "
-                                    "published", lo=0.01, hi=60.0, unit="s")
-    render_scale: float = param(1.0, "rendered embedding size relative to the depth frame",
-                                lo=0.1, hi=1.0)
-    sync_tolerance_ms: float = param(20.0, "max stamp difference between colour, depth, "
-                                     "pose and embedding", lo=0.0, hi=1000.0, unit="ms")
-    queue_size: int = param(30, "frames kept while waiting for their embedding", lo=1,
-                            hi=1000)
-    log_throttle_s: float = param(5.0, "min seconds between repeated skip warnings",
-                                  lo=0.0, hi=3600.0, unit="s")
-
-
-@dataclasses.dataclass(frozen=True)
-class DiscoveryNodeConfig:
-    """Settings of the discovery node (the science is under `segmentation`, `modulation`,
-    `mcl` and `discovery`)."""
-
-    sync_tolerance_ms: float = param(20.0, "max stamp difference between depth, colour, "
-                                     "rendered embedding and entropy", lo=0.0, hi=1000.0,
-                                     unit="ms")
-    queue_size: int = param(30, "depth frames kept while waiting for their rendered "
-                            "embedding", lo=1, hi=1000)
-    log_throttle_s: float = param(5.0, "min seconds between repeated skip warnings",
-                                  lo=0.0, hi=3600.0, unit="s")
-
-
-@dataclasses.dataclass(frozen=True)
 class ReplayConfig:
-    """Settings of the replay node, which publishes a bag's messages on their topics."""
+    """The replay node: plays a bag's messages on their topics at their recorded pace, as
+    `ros2 bag play` does (no rosbag2 wheels exist)."""
 
     bag: str = param("", "bag to replay (mcap or sqlite3 folder/file)")
     rate: float = param(1.0, "playback speed relative to the recorded stamps", lo=0.01,
                         hi=100.0)
-    loop: bool = param(False, "start again at the end of the bag")
-    start_delay_s: float = param(1.0, "wait before the first message so subscribers can "
-                                 "connect", lo=0.0, hi=60.0, unit="s")
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """Settings of the offline path (`neurncd run`), which drives the same core without DDS.
-
-    Offline, training is counted in iterations rather than seconds so that a
-    run gives the same result on a slow and a fast machine.
-    """
-
-    train_iterations_per_frame: int = param(8, "mapper iterations after each input frame",
-                                            lo=0, hi=10_000)
-    warmup_iterations: int = param(300, "mapper iterations after the first frame before "
-                                   "anything is labelled", lo=0, hi=1_000_000)
-    label_every: int = param(5, "label one frame in this many (all frames feed the map)",
-                             lo=1, hi=10_000)
-    max_frames: int = param(0, "stop after this many frames (0 = all)", lo=0, hi=10_000_000)
-    overlays: int = param(6, "how many labelled frames get a PNG overlay", lo=0, hi=10_000)
-    out_dir: str = param("out/run", "where overlays and metrics.json are written")
+    loop: bool = param(False, "start again at the end of the bag (the node then runs until "
+                       "stopped); otherwise it exits 0 at the end")
+    start_offset_s: float = param(0.0, "skip this much of the bag's beginning", lo=0.0,
+                                  hi=1e6, unit="s")
+    delay_s: float = param(0.0, "extra wait before the first message", lo=0.0, hi=3600.0,
+                           unit="s")
+    wait_for_subscribers_s: float = param(30.0, "before playing, wait at most this long until "
+                                          "every input topic of the contract that the bag "
+                                          "holds (colour, depth, camera info, pose) has a "
+                                          "subscriber; then play anyway, with a warning (0 = "
+                                          "do not wait)", lo=0.0, hi=3600.0, unit="s")
 
 
 # Section name -> (module, class). Core sections are imported lazily so this
@@ -114,11 +62,11 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "modulation": ("neurncd_ros.core.discovery.modulation", "ModulationConfig"),
     "mcl": ("neurncd_ros.core.discovery.mcl", "MCLConfig"),
     "discovery": ("neurncd_ros.core.discovery.labeller", "DiscoveryConfig"),
-    "embedding_node": (__name__, "EmbeddingNodeConfig"),
-    "mapper_node": (__name__, "MapperNodeConfig"),
-    "discovery_node": (__name__, "DiscoveryNodeConfig"),
+    "embedding_node": ("neurncd_ros.core.engine.embedding", "EmbeddingNodeConfig"),
+    "mapper_node": ("neurncd_ros.core.engine.mapping", "MapperNodeConfig"),
+    "discovery_node": ("neurncd_ros.core.engine.discovery", "DiscoveryNodeConfig"),
     "replay": (__name__, "ReplayConfig"),
-    "run": (__name__, "RunConfig"),
+    "run": ("neurncd_ros.core.engine.offline", "RunConfig"),
 }
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "neurncd.yaml"

@@ -30,11 +30,54 @@ def apply_ros_env(domain: int | None = None) -> None:
     os.environ.update(ros_env(domain))
 
 
-def start(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    """Start a node process with its output in ``log``."""
+def _ignore_sigint() -> None:  # in the child: as `cmd &` from a script or nohup start it
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def start(args: list[str], env: dict[str, str], log: Path,
+          ignore_sigint: bool = False) -> subprocess.Popen:
+    """Start a node process with its output in ``log`` (optionally with SIGINT ignored, as
+    a process started in the background by a non-interactive shell has it)."""
     fh = open(log, "w")
     return subprocess.Popen([sys.executable, *args], env=env, stdout=fh,
-                            stderr=subprocess.STDOUT, cwd=REPO)
+                            stderr=subprocess.STDOUT, cwd=REPO,
+                            preexec_fn=_ignore_sigint if ignore_sigint else None)
+
+
+def node_processes(domain: int) -> list[int]:
+    """Pids of neurncd node processes running on ROS domain ``domain`` (from /proc)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes()
+            env = (proc / "environ").read_bytes()
+        except OSError:
+            continue
+        if b"neurncd_ros.nodes" in cmd and f"\0ROS_DOMAIN_ID={domain}\0".encode() in (
+                b"\0" + env + b"\0"):
+            pids.append(int(proc.name))
+    return pids
+
+
+def diagnostics_of(node, names: tuple[str, ...]) -> dict:
+    """Subscribe ``node`` to /diagnostics; the returned dict fills with the latest values
+    per neurncd stage name."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from neurncd_ros.nodes.common import diagnostics_status
+
+    latest: dict = {}
+
+    def on(msg) -> None:
+        for n in names:
+            v = diagnostics_status(msg, n)
+            if v is not None:
+                latest[n] = v
+    node.create_subscription(DiagnosticArray, "/diagnostics", on, 50)
+    return latest
 
 
 def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:

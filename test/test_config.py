@@ -54,10 +54,12 @@ def test_shipped_yaml_is_generated_from_schema():
     ({"nosection": {}}, r"nosection: unknown section; known: topics"),
     ({"mapper": {"backend": "gpu"}}, r"mapper\.backend: 'gpu' is not allowed; allowed: one of "
                                      r"'fast', 'reference'"),
-    ({"run": {"label_every": 0}}, r"run\.label_every: 0 is out of range; allowed: int in "
-                                  r"\[1, 10000\]"),
-    ({"run": {"label_every": "5"}}, r"run\.label_every: '5' has type str; allowed: int"),
-    ({"run": {"label_every": 2.5}}, r"run\.label_every: 2\.5 has type float"),
+    ({"mapper_node": {"max_in_flight": 0}},
+     r"mapper_node\.max_in_flight: 0 is out of range; allowed: int in \[1, 100\]"),
+    ({"mapper_node": {"max_in_flight": "5"}},
+     r"mapper_node\.max_in_flight: '5' has type str; allowed: int"),
+    ({"mapper_node": {"max_in_flight": 2.5}},
+     r"mapper_node\.max_in_flight: 2\.5 has type float"),
     ({"replay": {"loop": 1}}, r"replay\.loop: 1 has type int; allowed: bool"),
     ({"replay": {"rate": float("nan")}}, r"replay\.rate: nan is not finite"),
     ({"mapper": 3}, r"mapper: section must be a mapping"),
@@ -74,8 +76,8 @@ def test_file_errors(tmp_path):
     bad.write_text("mapper:\n  backend: fast\n")
     with pytest.raises(ConfigError, match="ros__parameters"):
         config.load(bad)
-    bad.write_text("/**:\n  ros__parameters:\n    run: {label_every: -3}\n")
-    with pytest.raises(ConfigError, match=rf"{re.escape(str(bad))}: run\.label_every"):
+    bad.write_text("/**:\n  ros__parameters:\n    mapper_node: {max_in_flight: -3}\n")
+    with pytest.raises(ConfigError, match=rf"{re.escape(str(bad))}: mapper_node\.max_in_flight"):
         config.load(bad)
     bad.write_text("/**: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
@@ -83,8 +85,8 @@ def test_file_errors(tmp_path):
 
 
 def test_overrides_and_flat_names():
-    cfg = config.load(SHIPPED, {"mapper.backend": "reference", "run.label_every": 3})
-    assert cfg.mapper.backend == "reference" and cfg.run.label_every == 3
+    cfg = config.load(SHIPPED, {"mapper.backend": "reference", "mapper_node.max_in_flight": 3})
+    assert cfg.mapper.backend == "reference" and cfg.mapper_node.max_in_flight == 3
     flat = cfg.to_flat()
     assert flat["mapper.backend"] == "reference"
     assert config.from_flat(flat).to_nested() == cfg.to_nested()

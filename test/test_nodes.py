@@ -8,12 +8,22 @@ import sys
 import numpy as np
 import pytest
 
-from neurncd_ros.core import msgconv
+from neurncd_ros.core import classes, msgconv
 from neurncd_ros.core.camera import Intrinsics
 
-from rosutil import REPO, apply_ros_env, ros_env, spin_until, start, stop
+from rosutil import REPO, apply_ros_env, diagnostics_of, ros_env, spin_until, start, stop
 
 pytestmark = pytest.mark.ros
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory):
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    path = tmp_path_factory.mktemp("bag") / "scene.mcap"
+    write_bag(path, synth.generate(1003, 15, synth.SynthConfig(width=96, height=72)))
+    return path
 
 
 @pytest.fixture
@@ -50,32 +60,33 @@ def _frame_msgs(stamp_ns: int, w: int = 320, h: int = 240, depth_w: int | None =
 
 def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_path):
     node, domain = ros_node
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
 
-    from neurncd_ros.nodes.common import output_qos, sensor_qos
+    from neurncd_ros.core.engine.records import EmbeddingSpec
+    from neurncd_ros.nodes.common import latched_qos, output_qos, sensor_qos
 
     log = tmp_path / "embedding.log"
     proc = start(["-m", "neurncd_ros.nodes.embedding"], ros_env(domain), log)
-    got = []
+    got, specs = [], []
     try:
         node.create_subscription(Image, "/neurncd/embedding", got.append, sensor_qos(10))
-        pubs = {t: node.create_publisher(m, t, output_qos())
-                for t, m in (("/camera/color/image_raw", Image),
-                             ("/camera/depth/image_raw", Image),
-                             ("/camera/color/camera_info", CameraInfo))}
+        node.create_subscription(String, "/neurncd/embedding/spec", specs.append,
+                                 latched_qos())
+        pubs = {t: node.create_publisher(Image, t, output_qos())
+                for t in ("/camera/color/image_raw", "/camera/depth/image_raw")}
         assert spin_until(node, lambda: all(p.get_subscription_count() for p in pubs.values()),
                           60), log.read_text()
 
         def send(stamp, depth_w=None):
-            c, d, i = _frame_msgs(stamp, depth_w=depth_w)
-            pubs["/camera/color/camera_info"].publish(i)
+            c, d, _ = _frame_msgs(stamp, depth_w=depth_w)
             pubs["/camera/color/image_raw"].publish(c)
             pubs["/camera/depth/image_raw"].publish(d)
 
         # A frame whose depth does not match colour is skipped with a log, not a crash.
         for _ in range(10):
             send(2_000_000_000, depth_w=200)
-            if spin_until(node, lambda: "skipped frame 2000000000" in log.read_text(), 3):
+            if spin_until(node, lambda: "frame 2000000000 skipped" in log.read_text(), 3):
                 break
         stamp = 2_500_000_000
         for _ in range(10):
@@ -90,12 +101,63 @@ def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_pat
         assert emb.shape == (240, 320, 9) and emb.dtype == np.float32
         assert np.isfinite(emb).all() and emb.std() > 0
         assert not any(msgconv.stamp_to_ns(m.header.stamp) == 2_000_000_000 for m in got)
+        # What the channels mean is latched beside the embedding.
+        assert spin_until(node, lambda: specs, 10)
+        spec = EmbeddingSpec.from_json(specs[-1].data)
+        assert spec.channel_to_id == classes.KNOWN_IDS and spec.feature_channels == 0
         assert proc.poll() is None, "the node died"
     finally:
         code = stop(proc)
     text = log.read_text()
-    assert "skipped frame 2000000000" in text and "registered to colour" in text
-    assert code == 0 and "frames paired" in text, "the node must shut down cleanly on Ctrl-C"
+    assert "frame 2000000000 skipped" in text and "registered to colour" in text
+    assert code == 0 and "pairs " in text, "the node must shut down cleanly on Ctrl-C"
+
+
+@pytest.mark.parametrize("node_name, sig, extra", [
+    ("embedding", "SIGINT", []),
+    ("mapper", "SIGTERM", []),
+    ("discovery", "SIGINT", []),
+    ("replay", "SIGTERM", ["replay.loop:=true"]),
+])
+def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, extra,
+                                                                tmp_path, small_bag):
+    """Started as `cmd &` from a script (SIGINT ignored), a node still stops on SIGINT and
+    SIGTERM: it logs its summary and exits 0."""
+    import signal
+
+    domain = 180 + ["embedding", "mapper", "discovery", "replay"].index(node_name)
+    apply_ros_env(domain)
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node("watcher")
+    log = tmp_path / f"{node_name}.log"
+    args = ["-p", f"replay.bag:={small_bag}", *sum((["-p", e] for e in extra), [])]
+    proc = start(["-m", f"neurncd_ros.nodes.{node_name}", "--ros-args", *args],
+                 ros_env(domain), log, ignore_sigint=True)
+    try:
+        if node_name == "replay":
+            from sensor_msgs.msg import Image
+            from neurncd_ros.nodes.common import sensor_qos
+            seen = []
+            node.create_subscription(Image, "/camera/depth/image_raw", seen.append,
+                                     sensor_qos(5))
+            ready = lambda: bool(seen)  # noqa: E731 - it is playing
+        else:
+            diag = diagnostics_of(node, (node_name,))
+            ready = lambda: node_name in diag  # noqa: E731 - it is up and reporting
+        assert spin_until(node, ready, 120), log.read_text()
+        proc.send_signal(getattr(signal, sig))
+        code = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        node.destroy_node()
+        rclpy.shutdown()
+    text = log.read_text()
+    assert code == 0, text[-2000:]
+    assert f"{sig}: shutting down" in text or node_name == "replay", text[-2000:]
+    assert "Traceback" not in text, text[-2000:]
 
 
 @pytest.mark.parametrize("args, expect", [

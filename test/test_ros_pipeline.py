@@ -1,17 +1,19 @@
-"""The whole system over DDS: bringup replays a synthetic bag into the embedding, mapper and
-discovery nodes, and labels come out per the topic contract."""
+"""The whole system over DDS as a user runs it: bringup replays a synthetic bag into the
+embedding, mapper and discovery nodes, labels come out per the topic contract, and bringup
+stops everything once the bag is labelled; no process outlives it."""
 
 from __future__ import annotations
 
 import json
+import signal
+import time
 
 import numpy as np
 import pytest
 
-from neurncd_ros.core import msgconv
-from neurncd_ros.core import classes
+from neurncd_ros.core import classes, msgconv
 
-from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+from rosutil import apply_ros_env, node_processes, ros_env, spin_until, start
 
 pytestmark = pytest.mark.ros
 
@@ -23,61 +25,111 @@ def scene_bag(tmp_path_factory):
     from neurncd_ros.core.params import build
 
     cfg = build(synth.SynthConfig, {"width": 160, "height": 120})
-    frames = list(synth.generate(1003, 45, cfg))
+    frames = list(synth.generate(1003, 60, cfg))
     path = tmp_path_factory.mktemp("bag") / "scene.mcap"
     write_bag(path, frames, storage="mcap")
     return path, frames
 
 
-def test_bringup_labels_replayed_bag(scene_bag, tmp_path):
+def _wait_gone(domain: int, timeout: float) -> list[int]:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        left = node_processes(domain)
+        if not left:
+            return []
+        time.sleep(0.2)
+    return node_processes(domain)
+
+
+def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
+    """Started in the background as a script would (SIGINT ignored), bringup replays the
+    bag, the nodes label every keyframe, the map can be saved on request, and once the
+    nodes have drained bringup stops them all and exits 0."""
     bag, frames = scene_bag
     domain = 141
     apply_ros_env(domain)
     import rclpy
+    from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from neurncd_ros.nodes.common import latched_qos, sensor_qos
+    from neurncd_ros.nodes.common import latched_qos, output_qos
 
     map_path = tmp_path / "map.pt"
     log = tmp_path / "bringup.log"
     proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ros-args",
-                  "-p", "mapper.min_iterations_before_publish:=15",
-                  "-p", "replay.rate:=0.5", "-p", "replay.start_delay_s:=8.0",
-                  "-p", f"mapper_node.map_path:={map_path}"], ros_env(domain), log)
+                  "-p", f"mapper_node.map_path:={map_path}"], ros_env(domain), log,
+                 ignore_sigint=True)
     rclpy.init()
-    labels, tables = [], []
+    labels, tables, keyframes = [], [], []
     try:
         node = rclpy.create_node("test_listener")
-        node.create_subscription(Image, "/neurncd/labels", labels.append, sensor_qos(50))
+        node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(100))
         node.create_subscription(String, "/neurncd/classes", tables.append, latched_qos())
-        ok = spin_until(node, lambda: len(labels) >= 3 and tables, 150)
-        assert ok, f"{len(labels)} label images arrived\n" + log.read_text()[-3000:]
-        stamps = {f.stamp_ns: f for f in frames}
-        for msg in labels:
-            stamp = msgconv.stamp_to_ns(msg.header.stamp)
-            assert stamp in stamps, "labels must carry the stamp of the depth frame they label"
-            lab = msgconv.image_to_array(msg, "/neurncd/labels")
-            assert msg.encoding == "mono16" and lab.shape == stamps[stamp].depth.shape
-            ids = np.unique(lab)
-            assert np.all((ids <= classes.NUM_CLASSES) | (ids >= classes.NOVEL_ID_START))
-            assert (lab > 0).mean() > 0.9, "nearly every pixel of a processed frame is labelled"
-        table = json.loads(tables[-1].data)
-        assert table and all(v["kind"] in ("known", "novel") for v in table.values())
-        for key, v in table.items():
-            assert v["name"] == classes.class_name(int(key))
+        node.create_subscription(PoseStamped, "/neurncd/keyframes", keyframes.append,
+                                 output_qos(100))
+        assert spin_until(node, lambda: labels and tables, 240), log.read_text()[-3000:]
         # The map can be saved on request while it trains.
         client = node.create_client(Trigger, "/mapper/save_map")
-        assert client.wait_for_service(timeout_sec=10)
+        assert client.wait_for_service(timeout_sec=30)
         future = client.call_async(Trigger.Request())
-        assert spin_until(node, future.done, 30)
+        assert spin_until(node, future.done, 60)
         assert future.result().success, future.result().message
         assert map_path.is_file() and map_path.stat().st_size > 1000
+        # Bringup ends by itself once the bag is played and labelled.
+        assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()[-3000:]
         node.destroy_node()
     finally:
         rclpy.shutdown()
-        code = stop(proc, timeout=30)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
     text = log.read_text()
+    assert proc.returncode == 0, text[-3000:]
+    assert "the nodes have labelled what they received" in text, text[-3000:]
     assert "Traceback" not in text, text[-3000:]
-    assert code == 0, text[-2000:]
+    assert not _wait_gone(domain, 30), "node processes outlived bringup"
+
+    stamps = {f.stamp_ns: f for f in frames}
+    got = {msgconv.stamp_to_ns(m.header.stamp): m for m in labels}
+    kf = {msgconv.stamp_to_ns(m.header.stamp) for m in keyframes}
+    assert kf and kf <= set(got), f"keyframes not labelled: {sorted(kf - set(got))}"
+    for stamp, msg in got.items():
+        assert stamp in stamps, "labels must carry the stamp of the frame they label"
+        lab = msgconv.image_to_array(msg, "/neurncd/labels")
+        assert msg.encoding == "mono16" and lab.shape == stamps[stamp].depth.shape
+        assert msg.header.frame_id == "camera"
+        ids = np.unique(lab)
+        assert np.all((ids <= classes.NUM_CLASSES) | (ids >= classes.NOVEL_ID_START))
+        assert (lab > 0).mean() > 0.9, "nearly every pixel of a labelled frame is labelled"
+    table = json.loads(tables[-1].data)
+    assert table and all(v["kind"] in ("known", "novel") for v in table.values())
+    for key, v in table.items():
+        assert v["name"] == classes.class_name(int(key))
+    assert "saved map to" in text  # at shutdown too
+
+
+def test_no_node_outlives_a_killed_bringup(scene_bag, tmp_path):
+    """Even SIGKILL, which bringup cannot handle, leaves no node behind: each child has a
+    parent-death signal."""
+    bag, _ = scene_bag
+    domain = 142
+    log = tmp_path / "bringup.log"
+    proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ros-args",
+                  "-p", "replay.loop:=true"], ros_env(domain), log)
+    try:
+        end = time.monotonic() + 120
+        while time.monotonic() < end and len(node_processes(domain)) < 5:
+            time.sleep(0.2)
+        assert len(node_processes(domain)) == 5, log.read_text()[-2000:]  # bringup + 4
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        assert not _wait_gone(domain, 60), "nodes outlived their killed bringup"
+    finally:
+        for pid in node_processes(domain):
+            try:
+                import os
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass

@@ -83,7 +83,9 @@ class StampSync:
       back (``reset_after`` such messages in a row, e.g. a bag replayed in a loop,
       or a clock reset): then the pairing restarts on the new timeline.
 
-    Every drop is counted by reason in :attr:`drops`; :meth:`starved` names
+    Every drop is counted by reason in :attr:`drops`; duplicates, out-of-order
+    stamps and time resets are also passed to ``on_anomaly(stream, reason,
+    stamp_ns)`` (the stages report them as problems); :meth:`starved` names
     streams that do not arrive while others do (a wrong topic name or stamps
     that never agree), which a node reports in a warning.
     """
@@ -91,7 +93,8 @@ class StampSync:
     REASONS = ("expired", "superseded", "overflow", "duplicate", "out_of_order")
 
     def __init__(self, streams: Sequence[str], tolerance_ns: int, horizon_s: float = 2.0,
-                 capacity: int = 64, reset_after: int = 10, clock=None) -> None:
+                 capacity: int = 64, reset_after: int = 10, clock=None,
+                 on_anomaly=None) -> None:
         import collections
         import time
 
@@ -112,6 +115,11 @@ class StampSync:
         self.last_stamp: int | None = None
         self._backwards = 0
         self._since_group = collections.Counter()
+        self._on_anomaly = on_anomaly
+
+    def _anomaly(self, stream: str, reason: str, stamp_ns: int) -> None:
+        if self._on_anomaly is not None:
+            self._on_anomaly(stream, reason, stamp_ns)
 
     def _drop(self, stream: str, reason: str, n: int = 1) -> None:
         if n:
@@ -159,14 +167,17 @@ class StampSync:
             self._backwards += 1
             if self._backwards < self.reset_after:
                 self._drop(stream, "out_of_order")
+                self._anomaly(stream, "out_of_order", stamp_ns)
                 return []
             self.resets += 1
+            self._anomaly(stream, "time_reset", stamp_ns)
             self.reset()
         else:
             self._backwards = 0
         queue = self._pending[stream]
         if any(s == stamp_ns for s, _, _ in queue):
             self._drop(stream, "duplicate")
+            self._anomaly(stream, "duplicate", stamp_ns)
             return []
         queue.append((stamp_ns, now, value))
         queue.sort(key=lambda e: e[0])

@@ -22,10 +22,27 @@ class Topics:
     pose: str = param("/camera/pose", "geometry_msgs/PoseStamped camera-to-world, OpenCV axes")
     semantic: str = param("/camera/semantic/image_raw", "ground-truth NYU-13 ids, mono16")
     instance: str = param("/camera/instance/image_raw", "ground-truth instance ids, mono16")
-    embedding: str = param("/neurncd/embedding", "backbone embedding, 32FC<S>")
-    rendered_embedding: str = param("/neurncd/rendered_embedding", "embedding rendered by "
-                                    "the field, 32FC<S>")
-    entropy: str = param("/neurncd/entropy", "rendered entropy, 32FC1")
+    embedding: str = param("/neurncd/embedding", "backbone embedding, 32FC<C> (logits, then "
+                           "feature channels), same stamp as the frame")
+    embedding_spec: str = param("/neurncd/embedding/spec", "what the embedding channels mean "
+                                "(std_msgs/String JSON: channel_to_id, feature_channels, "
+                                "backbone), transient local")
+    rendered_embedding: str = param("/neurncd/rendered_embedding", "a view's embedding "
+                                    "rendered by the field, 32FC<C>, stamp of its frame")
+    entropy: str = param("/neurncd/entropy", "a view's entropy of the rendered softmax, "
+                         "32FC1")
+    view_depth: str = param("/neurncd/view/depth", "the measured depth of the rendered view "
+                            "(32FC1 m), published with it so discovery always has it")
+    view_color: str = param("/neurncd/view/color", "the colour image of the rendered view, "
+                            "rgb8")
+    view_camera_info: str = param("/neurncd/view/camera_info", "intrinsics of the rendered "
+                                  "view's depth and colour")
+    rendered_spec: str = param("/neurncd/rendered_embedding/spec", "what the rendered "
+                               "embedding channels mean (as embedding_spec), transient local")
+    keyframes: str = param("/neurncd/keyframes", "pose of every keyframe the field admits "
+                           "(geometry_msgs/PoseStamped, stamp of its frame)")
+    diagnostics: str = param("/diagnostics", "node health: rates, drops, state "
+                             "(diagnostic_msgs/DiagnosticArray)")
     labels: str = param("/neurncd/labels", "discovered labels, mono16 (novel ids >= 100)")
     labels_color: str = param("/neurncd/labels_color", "labels coloured with the palette, rgb8")
     classes: str = param("/neurncd/classes", "class table as JSON (std_msgs/String)")

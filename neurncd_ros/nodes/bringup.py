@@ -1,43 +1,137 @@
-"""Bringup: starts the embedding, mapper and discovery nodes (and optionally a replay).
+"""Bringup: starts the embedding, mapper and discovery nodes (and a replay with --bag).
 
-There is no ros2 launch wheel, so this is a small process supervisor: each
-node runs in its own process (the mapper's training and the backbone do not
-share a GIL), all with the same parameter file, and all are stopped together
-when one fails or on Ctrl-C.
+There is no ros2 launch wheel, so this is a small process supervisor, each
+node in its own process (the field's training and the backbone do not share a
+GIL), all with one parameter file:
+
+- a node that exits stops the others (bringup exits with its code);
+- with ``--bag``, when the replay reaches the end of the bag (exit 0) the
+  nodes keep running until they have labelled what they received: until
+  every node reports nothing pending on /diagnostics (or ``--drain-timeout``);
+  then all are stopped and bringup exits 0 (a replay that fails, e.g. on a
+  truncated bag, stops everything with its exit code);
+- SIGINT / SIGTERM stop all nodes cleanly (each saves what it is configured to
+  save); a node that does not stop within ``--stop-timeout`` is killed;
+- no child outlives bringup: each runs in its own process group (so a
+  terminal's Ctrl-C reaches bringup, which stops them in order) with a
+  parent-death signal, so they get SIGTERM even if bringup is killed.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 
-from .common import ensure_dds_profile, share_file
+from .common import Shutdown, diagnostics_status, ensure_dds_profile, share_file
 
 NODES = ("embedding", "mapper", "discovery")
+PR_SET_PDEATHSIG = 1
 
 
-def build_commands(params_file: str, bag: str | None, ros_args: list[str]) -> list[list[str]]:
+def _child_setup() -> None:  # runs in the child between fork and exec
+    os.setpgrp()
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:  # not Linux: the process group still lets bringup stop it
+        pass
+
+
+def build_commands(params_file: str, bag: str | None, ros_args: list[str]
+                   ) -> dict[str, list[str]]:
     """One command per node: ``python -m neurncd_ros.nodes.<node> --ros-args ...``."""
     base = ["--ros-args", "--params-file", params_file, *ros_args]
-    cmds = [[sys.executable, "-m", f"neurncd_ros.nodes.{n}", *base] for n in NODES]
+    cmds = {n: [sys.executable, "-m", f"neurncd_ros.nodes.{n}", *base] for n in NODES}
     if bag:
-        cmds.append([sys.executable, "-m", "neurncd_ros.nodes.replay", *base,
-                     "-p", f"replay.bag:={bag}"])
+        cmds["replay"] = [sys.executable, "-m", "neurncd_ros.nodes.replay", *base,
+                          "-p", f"replay.bag:={bag}"]
     return cmds
+
+
+class DrainWatcher:
+    """Listens to /diagnostics in a thread; tells when every node has nothing pending."""
+
+    def __init__(self, topic: str) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        self._context = rclpy.Context()
+        rclpy.init(context=self._context, args=["bringup"],
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = rclpy.create_node("bringup", context=self._context)
+        self._latest: dict[str, tuple[float, int]] = {}
+        self._lock = threading.Lock()
+        self.node.create_subscription(DiagnosticArray, topic, self._on_diag, 50)
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        while self._context.ok():
+            try:
+                self._executor.spin_once(timeout_sec=0.1)
+            except Exception:  # noqa: BLE001 - the context went away at shutdown
+                break
+
+    def _on_diag(self, msg) -> None:
+        now = time.monotonic()
+        for name in NODES:
+            values = diagnostics_status(msg, name)
+            if values is not None:
+                with self._lock:
+                    self._latest[name] = (now, int(values.get("pending", "1") or 1))
+
+    def drained_since(self, t0: float) -> bool:
+        """Every node reported pending 0 in a status received after ``t0``."""
+        with self._lock:
+            return all(name in self._latest and self._latest[name][0] > t0
+                       and self._latest[name][1] == 0 for name in NODES)
+
+    def close(self) -> None:
+        try:
+            self._executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+            self._context.try_shutdown()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _stop_all(procs: dict[str, subprocess.Popen], timeout: float) -> None:
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + timeout
+    for name, p in procs.items():
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            print(f"bringup: {name} did not stop within {timeout:g} s: killed", file=sys.stderr)
+            p.kill()
+            p.wait()
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="bringup", description="Start the embedding, mapper and discovery nodes with "
-        "one parameter file; with --bag also replay a bag into them.",
+        "one parameter file; with --bag also replay a bag into them and stop once they "
+        "have labelled it.",
         epilog="Extra ROS arguments after --ros-args are passed to every node.")
     parser.add_argument("--params-file", default=str(share_file("config", "neurncd.yaml")),
                         help="ROS 2 parameter file (default: the shipped config/neurncd.yaml)")
     parser.add_argument("--bag", default=None, help="bag to replay into the nodes")
+    parser.add_argument("--drain-timeout", type=float, default=120.0,
+                        help="after the bag ends, wait at most this long (s) for the nodes "
+                        "to finish what they received")
+    parser.add_argument("--stop-timeout", type=float, default=10.0,
+                        help="seconds a node gets to stop cleanly before it is killed")
     argv = sys.argv[1:] if argv is None else argv
     ros_args: list[str] = []
     if "--ros-args" in argv:
@@ -48,26 +142,49 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"parameter file {args.params_file} does not exist")
     if args.bag and not os.path.exists(args.bag):
         parser.error(f"bag {args.bag} does not exist")
+    shutdown = Shutdown().install()
     ensure_dds_profile()
-    procs = [subprocess.Popen(c) for c in build_commands(args.params_file, args.bag, ros_args)]
+    from .. import config as config_mod
+
+    topic = config_mod.load(args.params_file).topics.diagnostics
+    watcher = DrainWatcher(topic)
+    procs = {name: subprocess.Popen(cmd, preexec_fn=_child_setup)
+             for name, cmd in build_commands(args.params_file, args.bag, ros_args).items()}
     code = 0
+    drain_from: float | None = None
     try:
-        while all(p.poll() is None for p in procs):
-            time.sleep(0.5)
-        failed = [p for p in procs if p.poll() not in (None, 0)]
-        code = failed[0].returncode if failed else 0
-    except KeyboardInterrupt:
-        pass
+        while not shutdown.requested.is_set():
+            time.sleep(0.2)
+            dead = [(n, p.returncode) for n, p in procs.items()
+                    if n != "replay" and p.poll() is not None]
+            if dead:
+                name, rc = dead[0]
+                print(f"bringup: {name} exited with code {rc}: stopping the others",
+                      file=sys.stderr)
+                code = rc or 1
+                break
+            replay = procs.get("replay")
+            if replay is not None and drain_from is None and replay.poll() is not None:
+                if replay.returncode != 0:
+                    print(f"bringup: replay failed (code {replay.returncode}): stopping",
+                          file=sys.stderr)
+                    code = replay.returncode
+                    break
+                drain_from = time.monotonic()
+                print("bringup: the bag has been played; waiting for the nodes to finish",
+                      flush=True)
+            if drain_from is not None:
+                if watcher.drained_since(drain_from + 1.0):
+                    print("bringup: the nodes have labelled what they received: stopping",
+                          flush=True)
+                    break
+                if time.monotonic() - drain_from > args.drain_timeout:
+                    print(f"bringup: nodes still busy {args.drain_timeout:g} s after the bag "
+                          "ended: stopping", file=sys.stderr)
+                    break
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 10
-        for p in procs:
-            try:
-                p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
+        _stop_all(procs, args.stop_timeout)
+        watcher.close()
     return code
 
 

@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 from typing import Any, Callable
 
-import cv2
 import numpy as np
 
 from ..core import msgconv
@@ -110,36 +109,74 @@ def declare_config(node: Any) -> config_mod.Config:
     return config_mod.from_flat(values)
 
 
+class Shutdown:
+    """SIGINT and SIGTERM handled explicitly, also when the process started with SIGINT
+    ignored (``cmd &`` from a script, nohup, some supervisors), where Python installs no
+    KeyboardInterrupt. The first signal asks for a clean stop; a second one exits at once."""
+
+    def __init__(self) -> None:
+        import threading
+        self.requested = threading.Event()
+        self.signal_name = ""
+
+    def install(self) -> "Shutdown":
+        import signal
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        import signal
+        if self.requested.is_set():
+            os._exit(128 + signum)
+        self.signal_name = signal.Signals(signum).name
+        self.requested.set()
+
+
+def ros_logger(node: Any):
+    """A Health logger writing to the node's ROS logger."""
+    logger = node.get_logger()
+    return lambda level, text: (logger.info, logger.warning, logger.error)[level](text)
+
+
 def run_node(factory: Callable[[], Any], name: str, description: str,
              argv: list[str] | None = None) -> int:
-    """Standard main(): help, DDS profile, rclpy init, spin, clean shutdown.
+    """Standard main(): help, DDS profile, signals, rclpy init, spin, clean shutdown.
 
-    ``factory`` builds the node after ``rclpy.init``; a ConfigError is printed
-    and exits 2 instead of a traceback.
+    ``factory`` builds the node after ``rclpy.init``. The node may define
+    ``close()`` (called once on the way out: stop workers, save state, log a
+    summary), ``done`` (an Event: the node has finished its work, e.g. a replay
+    at the end of its bag) and ``exit_code``. A ConfigError is printed and
+    exits 2 instead of a traceback.
     """
     _, ros_args = parse_cli(name, description, argv)
+    shutdown = Shutdown().install()
     ensure_dds_profile()
+    import cv2
+    cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    # Ctrl-C arrives as KeyboardInterrupt while the context is still valid, so
-    # the node can save its map and log a summary before shutdown.
     rclpy.init(args=[name, *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    code = 0
     try:
         node = factory()
         executor = MultiThreadedExecutor(num_threads=3)
         executor.add_node(node)
-        while rclpy.ok():  # short waits so Ctrl-C is seen promptly
-            executor.spin_once(timeout_sec=0.2)
+        done = getattr(node, "done", None)
+        while rclpy.ok() and not shutdown.requested.is_set() and not (done and done.is_set()):
+            executor.spin_once(timeout_sec=0.1)  # short waits: signals are seen promptly
+        if shutdown.requested.is_set():
+            node.get_logger().info(f"{shutdown.signal_name}: shutting down")
+        code = int(getattr(node, "exit_code", 0) or 0)
     except ConfigError as err:
         print(f"{name}: configuration error: {err}", file=sys.stderr)
-        return 2
+        code = 2
     except ValueError as err:  # rclpy refusing a parameter override (e.g. `key: []`)
-        print(f"{name}: parameter error: {err} (an empty list in a parameter file has no "
-              "type in ROS: leave the key out to get its default)", file=sys.stderr)
-        return 2
+        print(f"{name}: error: {err}", file=sys.stderr)
+        code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -150,7 +187,7 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
-    return 0
+    return code
 
 
 # ---------------------------------------------------------------- QoS
@@ -175,15 +212,13 @@ def latched_qos():
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def view_qos(depth: int = 10):
+    """Reliable, keep last: the pieces of a view (and the embedding) are not dropped by the
+    transport; the stages decide what to drop, and count it."""
+    return output_qos(depth)
+
+
 # ---------------------------------------------------------------- messages
-
-def fit_to(arr: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Resize a rendering to the depth frame's size (bilinear; channels kept)."""
-    if arr.shape[:2] == (height, width):
-        return arr
-    out = cv2.resize(arr, (width, height), interpolation=cv2.INTER_LINEAR)
-    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
-
 
 def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
     """An rclpy sensor_msgs/Image from ``msgconv.image_fields``-style fields."""
@@ -202,93 +237,53 @@ def image_msg(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str, topi
     return make_image(msgconv.image_fields(arr, encoding, topic), stamp_ns, frame_id)
 
 
+def camera_info_msg(intr, stamp_ns: int, frame_id: str):
+    from sensor_msgs.msg import CameraInfo
+    f = msgconv.camera_info_fields(intr)
+    msg = CameraInfo()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width, msg.distortion_model = f["height"], f["width"], f["distortion_model"]
+    msg.d, msg.k, msg.r, msg.p = (list(map(float, f[k])) for k in ("d", "k", "r", "p"))
+    return msg
+
+
+def pose_msg(T: np.ndarray, stamp_ns: int, frame_id: str):
+    from geometry_msgs.msg import PoseStamped
+    f = msgconv.matrix_to_pose_fields(T)
+    msg = PoseStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    p, q = msg.pose.position, msg.pose.orientation
+    p.x, p.y, p.z = f["position"]
+    q.x, q.y, q.z, q.w = f["orientation"]
+    return msg
+
+
 def header_ns(msg: Any) -> int:
     return msgconv.stamp_to_ns(msg.header.stamp)
 
 
-class StampMatcher:
-    """Pairs messages of several topics by header stamp, without message_filters.
-
-    ``add(slot, stamp_ns, value)`` stores a message; when every slot has a
-    value within ``tolerance_ns`` of one stamp, the group is returned and
-    removed. Older incomplete groups are dropped (counted) when ``capacity``
-    is exceeded, so memory stays bounded whatever arrives.
-    """
-
-    def __init__(self, slots: tuple[str, ...], tolerance_ns: int, capacity: int) -> None:
-        self.slots, self.tolerance_ns, self.capacity = slots, int(tolerance_ns), capacity
-        self._pending: dict[str, list[tuple[int, Any]]] = {s: [] for s in slots}
-        self.dropped = 0
-
-    def starved(self) -> tuple[str, ...]:
-        """Slots with nothing pending while another slot's queue is full: the topics
-        that are not arriving (or not within the tolerance) while the rest are."""
-        if not any(len(q) >= self.capacity for q in self._pending.values()):
-            return ()
-        return tuple(s for s, q in self._pending.items() if not q)
-
-    def add(self, slot: str, stamp_ns: int, value: Any) -> tuple[int, dict[str, Any]] | None:
-        if slot not in self._pending:
-            raise KeyError(f"unknown slot {slot!r}; slots: {self.slots}")
-        queue = self._pending[slot]
-        queue.append((stamp_ns, value))
-        if len(queue) > self.capacity:
-            queue.pop(0)
-            self.dropped += 1
-        return self._match(stamp_ns)
-
-    def _match(self, stamp_ns: int) -> tuple[int, dict[str, Any]] | None:
-        picked = {}
-        for slot, queue in self._pending.items():
-            best = None
-            for i, (s, _) in enumerate(queue):
-                d = abs(s - stamp_ns)
-                if d <= self.tolerance_ns and (best is None or d < best[0]):
-                    best = (d, i)
-            if best is None:
-                return None
-            picked[slot] = best[1]
-        group = {}
-        for slot, i in picked.items():
-            queue = self._pending[slot]
-            group[slot] = queue[i][1]
-            # Everything older than the matched message can never match again.
-            self.dropped += i
-            del queue[: i + 1]
-        return stamp_ns, group
+def diagnostics_msg(node: Any, healths: list) -> Any:
+    """A diagnostic_msgs/DiagnosticArray with one status per stage health."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    arr = DiagnosticArray()
+    arr.header.stamp = node.get_clock().now().to_msg()
+    for health, rates in healths:
+        snap = health.snapshot(rates)
+        st = DiagnosticStatus()
+        st.level = bytes([snap["level"]])
+        st.name = f"neurncd_ros: {health.name}"
+        st.message = snap["message"][:200]
+        st.hardware_id = node.get_fully_qualified_name()
+        st.values = [KeyValue(key=k, value=v) for k, v in snap["values"].items()]
+        arr.status.append(st)
+    return arr
 
 
-class PairedFrames:
-    """Mixin of the nodes that pair topics by stamp and need the camera intrinsics.
-
-    The node sets ``self.matcher``, ``self.topics``, ``self.throttle`` and
-    implements ``on_frame(stamp_ns, group)``; a ValueError from it skips that
-    frame with a throttled warning (counted in ``self.skipped``), never the node.
-    """
-
-    intrinsics = None
-    skipped = 0
-
-    def on_info(self, msg) -> None:
-        try:
-            self.intrinsics = msgconv.camera_info_to_intrinsics(msg, self.topics.camera_info)
-        except ValueError as err:
-            self.get_logger().warning(str(err), throttle_duration_sec=self.throttle)
-
-    def offer(self, slot: str, msg) -> None:
-        match = self.matcher.add(slot, header_ns(msg), msg)
-        if match is None:
-            starved = self.matcher.starved()
-            if starved:
-                self.get_logger().warning(
-                    f"waiting for {', '.join(starved)}: nothing pending while other topics "
-                    f"arrive ({self.matcher.dropped} unpaired messages dropped so far; check "
-                    f"the topic names and that stamps agree within the sync tolerance)",
-                    throttle_duration_sec=self.throttle)
-            return
-        try:
-            self.on_frame(*match)
-        except ValueError as err:
-            self.skipped += 1
-            self.get_logger().warning(f"skipped frame {match[0]}: {err}",
-                                      throttle_duration_sec=self.throttle)
+def diagnostics_status(msg: Any, name: str) -> dict[str, str] | None:
+    """The values of the status named ``neurncd_ros: <name>`` in a DiagnosticArray."""
+    for st in msg.status:
+        if st.name == f"neurncd_ros: {name}":
+            return {kv.key: kv.value for kv in st.values}
+    return None

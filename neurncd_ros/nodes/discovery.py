@@ -1,109 +1,125 @@
-"""Discovery node: depth + rendered embedding + entropy in, known and novel labels out.
+"""Discovery node: rendered views in, known and novel labels out.
 
-Pairs each depth frame with the mapper's rendered embedding and entropy of the
-same stamp (and the camera's colour image when ``segmentation.colour_edges``),
-runs the core ``Discoverer`` (segmentation, feature modulation, Markov
-clustering, stable ids) and publishes the label image, its colour rendering and
-the class table (transient local, so late subscribers get it).
+A thin adapter over the engine's :class:`DiscoveryStage`: the pieces of each
+view the mapper publishes (rendered embedding, entropy, the view's depth,
+colour and camera info, all with the frame's stamp) are converted and offered
+to the stage, which pairs them; a worker labels complete views in order
+(segmentation, feature modulation, Markov clustering, stable novel ids) and
+publishes the label image, its colour rendering and the class table
+(transient local, so late subscribers get it). What the embedding channels
+mean arrives latched on ``topics.rendered_spec``.
 """
 
 from __future__ import annotations
 
 import json
 
-import cv2
+from ..core import classes, msgconv
+from ..core.engine.discovery import DiscoveryStage  # before rclpy: scipy/torch load first
+from ..core.engine.health import Health
+from ..core.engine.records import EmbeddingSpec
+from ..core.engine.worker import Worker
+from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
+                     output_qos, ros_logger, run_node, view_qos)
 
-from ..core import msgconv
-from ..core.discovery.labeller import Discoverer  # before rclpy: scipy/torch load first
-from ..core import classes
-from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,
-                     latched_qos, output_qos, run_node, sensor_qos)
-
-DESCRIPTION = ("Segments depth into convex segments, clusters them on the rendered "
-               "embedding and entropy, and publishes /neurncd/labels (mono16), "
+DESCRIPTION = ("Segments each rendered view's depth into convex segments, clusters them on "
+               "the rendered embedding and entropy, and publishes /neurncd/labels (mono16), "
                "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON).")
 
 
 def make_node():
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
 
-
-    class DiscoveryNode(PairedFrames, Node):
+    class DiscoveryNode(Node):
         def __init__(self) -> None:
             super().__init__("discovery",
                              automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
-            node_cfg, self.topics = self.cfg.discovery_node, self.cfg.topics
-            self.throttle = node_cfg.log_throttle_s
-            self.discoverer = None
-            # Colour edges need the camera's colour image of the same stamp.
-            self.use_colour = self.cfg.segmentation.colour_edges
-            streams = ("depth", "embedding", "entropy") + (("color",) if self.use_colour
-                                                           else ())
-            self.matcher = StampMatcher(streams, int(node_cfg.sync_tolerance_ms * 1e6),
-                                        node_cfg.queue_size)
-            q = sensor_qos(node_cfg.queue_size)
-            if self.use_colour:
-                self.create_subscription(Image, self.topics.color,
-                                         lambda m: self.offer("color", m), q)
-            self.create_subscription(Image, self.topics.depth,
-                                     lambda m: self.offer("depth", m), q)
-            self.create_subscription(Image, self.topics.rendered_embedding,
-                                     lambda m: self.offer("embedding", m), q)
-            self.create_subscription(Image, self.topics.entropy,
-                                     lambda m: self.offer("entropy", m), q)
-            self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
-                                     sensor_qos())
-            self.pub_labels = self.create_publisher(Image, self.topics.labels, output_qos())
-            self.pub_color = self.create_publisher(Image, self.topics.labels_color,
-                                                   output_qos())
-            self.pub_classes = self.create_publisher(String, self.topics.classes,
-                                                     latched_qos())
-            self.labelled = 0
+            node_cfg, t = self.cfg.discovery_node, self.cfg.topics
+            self.topics = t
+            self.health = Health("discovery", ros_logger(self), node_cfg.log_throttle_s)
+            self.stage = DiscoveryStage(self.cfg, node_cfg, self.health)
+            self.frame_ids: dict[int, str] = {}
+            q = view_qos(2 * node_cfg.queue_size)
+            convert = {
+                "depth": (t.view_depth, Image, msgconv.depth_from_image),
+                "color": (t.view_color, Image, msgconv.rgb_from_image),
+                "info": (t.view_camera_info, CameraInfo, msgconv.camera_info_to_intrinsics),
+                "entropy": (t.entropy, Image, msgconv.image_to_array),
+                "embedding": (t.rendered_embedding, Image, self._embedding),
+            }
+            for stream, (topic, mtype, fn) in convert.items():
+                self.create_subscription(
+                    mtype, topic, lambda m, s=stream, tp=topic, f=fn: self.on_piece(s, tp, f, m),
+                    q)
+            self.create_subscription(String, t.rendered_spec, self.on_spec, latched_qos())
+            self.pub_labels = self.create_publisher(Image, t.labels, output_qos())
+            self.pub_color = self.create_publisher(Image, t.labels_color, output_qos())
+            self.pub_classes = self.create_publisher(String, t.classes, latched_qos())
+            self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, 10)
+            self.create_timer(1.0, self.publish_diagnostics)
+            self.worker = Worker("discovery", self.step, self.health).start()
 
-        def on_frame(self, stamp: int, group: dict) -> None:
-            if self.intrinsics is None:
-                raise ValueError(f"no camera info yet on {self.topics.camera_info}")
-            depth_msg = group["depth"]
-            depth = msgconv.depth_from_image(depth_msg, self.topics.depth)
-            emb = msgconv.image_to_array(group["embedding"], self.topics.rendered_embedding)
-            ent = msgconv.image_to_array(group["entropy"], self.topics.entropy)
-            if emb.ndim == 2:
-                emb = emb[:, :, None]
-            if ent.ndim != 2:
-                raise ValueError(f"{self.topics.entropy}: expected 32FC1, got "
-                                 f"{group['entropy'].encoding}")
-            intr = self.intrinsics
-            if depth.shape != intr.shape:
-                raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]} but camera "
-                                 f"info says {intr.width}x{intr.height}")
-            h, w = depth.shape
-            emb, ent = fit_to(emb, h, w), fit_to(ent, h, w)
-            rgb = None
-            if self.use_colour:
-                rgb = msgconv.rgb_from_image(group["color"], self.topics.color)
-                if rgb.shape[:2] != (h, w):
-                    rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-            if self.discoverer is None:
-                channel_to_id = classes.channel_to_id(emb.shape[2])
-                self.discoverer = Discoverer(self.cfg.discovery, channel_to_id,
-                                             mcl_cfg=self.cfg.mcl,
-                                             seg_cfg=self.cfg.segmentation,
-                                             mod_cfg=self.cfg.modulation)
-            labels = self.discoverer.process(depth, intr, emb, ent, stamp, rgb)
-            frame_id = depth_msg.header.frame_id
-            self.pub_labels.publish(image_msg(labels, "mono16", stamp, frame_id,
-                                              self.topics.labels))
-            self.pub_color.publish(image_msg(classes.colourise(labels), "rgb8", stamp,
-                                             frame_id, self.topics.labels_color))
+        @staticmethod
+        def _embedding(msg, topic):
+            arr = msgconv.image_to_array(msg, topic)
+            return arr[:, :, None] if arr.ndim == 2 else arr
+
+        def on_piece(self, stream: str, topic: str, fn, msg) -> None:
+            try:
+                value = fn(msg, topic)
+            except ValueError as err:
+                self.health.problem(f"bad_{stream}", f"{topic}: message skipped: {err}")
+                return
+            stamp = header_ns(msg)
+            if stream == "depth":
+                self.frame_ids[stamp] = msg.header.frame_id or self.topics.camera_frame
+            if self.stage.offer(stream, stamp, value):
+                self.worker.notify()
+
+        def on_spec(self, msg) -> None:
+            try:
+                self.stage.set_spec(EmbeddingSpec.from_json(msg.data))
+            except ValueError as err:
+                self.health.problem("bad_spec", f"{self.topics.rendered_spec}: {err}")
+                return
+            self.worker.notify()
+
+        def step(self, cancel) -> bool:
+            view = self.stage.take()
+            if view is None:
+                return False
+            frame_id = self.frame_ids.pop(view.stamp_ns, self.topics.camera_frame)
+            for old in [s for s in self.frame_ids if s < view.stamp_ns]:
+                del self.frame_ids[old]
+            try:
+                rec = self.stage.label(view)
+            except ValueError as err:
+                self.health.problem("view_skipped", f"view {view.stamp_ns} skipped: {err}")
+                return True
+            t = self.topics
+            self.pub_labels.publish(image_msg(rec.labels, "mono16", rec.stamp_ns, frame_id,
+                                              t.labels))
+            self.pub_color.publish(image_msg(classes.colourise(rec.labels), "rgb8",
+                                             rec.stamp_ns, frame_id, t.labels_color))
             self.pub_classes.publish(String(data=json.dumps(
-                {str(k): v for k, v in self.discoverer.classes().items()})))
-            self.labelled += 1
+                {str(k): v for k, v in rec.classes.items()})))
+            self.health.count("published")
+            return True
+
+        def publish_diagnostics(self) -> None:
+            self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            self.pub_diag.publish(diagnostics_msg(self, [(self.health, ("views_received",
+                                                                        "labelled"))]))
 
         def close(self) -> None:
-            self.get_logger().info(f"frames labelled {self.labelled}, skipped {self.skipped}")
+            self.worker.stop()
+            c = self.health.counts
+            self.get_logger().info(f"views received {c['views_received']}, labelled "
+                                   f"{c['labelled']}, problems {dict(self.health.problems)}")
 
     return DiscoveryNode()
 

@@ -1,115 +1,106 @@
-"""Embedding node: RGB-D frames in, per-pixel backbone logits (the semantic embedding) out.
+"""Embedding node: RGB-D frames in, the backbone's per-pixel semantic embedding out.
 
-Subscribes colour, depth and camera info, pairs colour and depth by stamp and
-runs the backbone in a worker thread on the newest pair only, so callbacks
-never wait for the model and stale frames are dropped, not queued.
+A thin adapter over the engine's :class:`EmbeddingStage`: colour and depth
+messages are converted and offered to the stage (which pairs them by stamp
+and keeps the newest pair); a worker thread embeds the newest pair and
+publishes it, so callbacks never wait for the network. What the channels mean
+is published once, latched, on ``topics.embedding_spec``.
 """
 
 from __future__ import annotations
 
-import threading
-import time
-
 from ..core import msgconv
 from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
-from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
-                     output_qos, run_node, sensor_qos)
+from ..core.engine.embedding import EmbeddingStage
+from ..core.engine.health import Health
+from ..core.engine.worker import Worker
+from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
+                     output_qos, ros_logger, run_node, sensor_qos)
 
-DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone and publishes the per-pixel "
-               "pre-softmax logits as a 32FC<S> image on /neurncd/embedding.")
+DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colour+depth pair "
+               "and publishes its embedding (32FC<C>: logits, then features) on "
+               "/neurncd/embedding, with what the channels mean on /neurncd/embedding/spec.")
 
 
 def make_node():
+    import torch
+    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
 
-
-    class EmbeddingNode(PairedFrames, Node):
+    class EmbeddingNode(Node):
         def __init__(self) -> None:
             super().__init__("embedding",
                              automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
-            node_cfg, topics = self.cfg.embedding_node, self.cfg.topics
-            self.topics = topics
-            self.throttle = node_cfg.log_throttle_s
-            self.backbone = load_backbone(self.cfg.backbone)
-            self.get_logger().info(
-                f"backbone {self.cfg.backbone.kind} with {self.backbone.channels} channels")
-            self.matcher = StampMatcher(("color", "depth"),
-                                        int(node_cfg.sync_tolerance_ms * 1e6),
-                                        node_cfg.queue_size)
-            self.pub = self.create_publisher(Image, topics.embedding, output_qos())
-            self.create_subscription(Image, topics.color, self.on_color,
-                                     sensor_qos(node_cfg.queue_size))
-            self.create_subscription(Image, topics.depth, self.on_depth,
-                                     sensor_qos(node_cfg.queue_size))
-            self.create_subscription(CameraInfo, topics.camera_info, self.on_info,
-                                     sensor_qos())
-            self._latest = None
-            self._wake = threading.Condition()
-            self._stop = False
-            self.frames_in = self.frames_out = self.frames_dropped = 0
-            self._worker = threading.Thread(target=self._work, name="backbone", daemon=True)
-            self._worker.start()
+            node_cfg, self.topics = self.cfg.embedding_node, self.cfg.topics
+            if self.cfg.backbone.num_threads > 0:
+                torch.set_num_threads(self.cfg.backbone.num_threads)
+            self.health = Health("embedding", ros_logger(self), node_cfg.log_throttle_s)
+            self.stage = EmbeddingStage(load_backbone(self.cfg.backbone), node_cfg,
+                                        self.health)
+            spec = self.stage.spec
+            self.get_logger().info(f"backbone {spec.backbone}: {spec.logit_channels} logit + "
+                                   f"{spec.feature_channels} feature channels")
+            self.frame_id = self.topics.camera_frame
+            self.pub = self.create_publisher(Image, self.topics.embedding, output_qos())
+            self.pub_spec = self.create_publisher(String, self.topics.embedding_spec,
+                                                  latched_qos())
+            self.pub_spec.publish(String(data=spec.to_json()))
+            self.pub_diag = self.create_publisher(DiagnosticArray, self.topics.diagnostics, 10)
+            q = sensor_qos(node_cfg.queue_size)
+            self.create_subscription(Image, self.topics.color, self.on_color, q)
+            self.create_subscription(Image, self.topics.depth, self.on_depth, q)
+            self.create_timer(1.0, self.publish_diagnostics)
+            self.worker = Worker("backbone", self.step, self.health).start()
 
         def on_color(self, msg) -> None:
-            self._offer("color", msg)
+            try:
+                rgb = msgconv.rgb_from_image(msg, self.topics.color)
+            except ValueError as err:
+                self.health.problem("bad_color", f"colour image skipped: {err}")
+                return
+            if self.stage.offer("color", header_ns(msg), rgb):
+                self.worker.notify()
 
         def on_depth(self, msg) -> None:
-            self._offer("depth", msg)
-
-        def _offer(self, slot: str, msg) -> None:
-            match = self.matcher.add(slot, header_ns(msg), msg)
-            if match is None:
+            try:
+                depth = msgconv.depth_from_image(msg, self.topics.depth)
+            except ValueError as err:
+                self.health.problem("bad_depth", f"depth image skipped: {err}")
                 return
-            with self._wake:
-                if self._latest is not None:
-                    self.frames_dropped += 1  # the model was busy: keep only the newest
-                self._latest = match
-                self.frames_in += 1
-                self._wake.notify()
+            if msg.header.frame_id:
+                self.frame_id = msg.header.frame_id
+            if self.stage.offer("depth", header_ns(msg), depth):
+                self.worker.notify()
 
-        def _work(self) -> None:
-            while True:
-                with self._wake:
-                    while self._latest is None and not self._stop:
-                        self._wake.wait(0.5)
-                    if self._stop:
-                        return
-                    stamp, group = self._latest
-                    self._latest = None
-                try:
-                    self._process(stamp, group["color"], group["depth"])
-                except ValueError as err:
-                    self.get_logger().warning(f"skipped frame {stamp}: {err}",
-                                              throttle_duration_sec=self.throttle)
-                except Exception as err:  # never let one frame kill the worker
-                    self.get_logger().error(f"backbone failed on frame {stamp}: {err!r}",
-                                            throttle_duration_sec=self.throttle)
+        def step(self, cancel) -> bool:
+            job = self.stage.take()
+            if job is None:
+                return False
+            try:
+                rec = self.stage.embed(*job)
+            except ValueError as err:
+                self.health.problem("frame_skipped", f"frame {job[0]} skipped: {err}")
+                return True
+            self.pub.publish(image_msg(rec.embedding, f"32FC{rec.embedding.shape[2]}",
+                                       rec.stamp_ns, self.frame_id, self.topics.embedding))
+            self.health.count("published")
+            return True
 
-        def _process(self, stamp: int, color_msg, depth_msg) -> None:
-            rgb = msgconv.rgb_from_image(color_msg, self.topics.color)
-            depth = msgconv.depth_from_image(depth_msg, self.topics.depth)
-            if rgb.shape[:2] != depth.shape:
-                raise ValueError(f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
-                                 f"{depth.shape[1]}x{depth.shape[0]}: depth must be "
-                                 "registered to colour")
-            t0 = time.perf_counter()
-            logits = self.backbone.predict(rgb, depth)
-            enc = f"32FC{logits.shape[2]}"
-            self.pub.publish(image_msg(logits, enc, stamp, depth_msg.header.frame_id,
-                                       self.topics.embedding))
-            self.frames_out += 1
-            self.get_logger().debug(f"embedding {stamp} in {1e3 * (time.perf_counter() - t0):.0f} ms")
+        def publish_diagnostics(self) -> None:
+            self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            self.pub_diag.publish(diagnostics_msg(self, [(self.health, ("pairs",
+                                                                        "published"))]))
 
         def close(self) -> None:
-            with self._wake:
-                self._stop = True
-                self._wake.notify()
-            self._worker.join(timeout=5)
-            self.get_logger().info(f"frames paired {self.frames_in}, published "
-                                   f"{self.frames_out}, dropped while busy "
-                                   f"{self.frames_dropped}")
+            self.worker.stop()
+            c = self.health.counts
+            self.get_logger().info(
+                f"pairs {c['pairs']}, embedded {c['embedded']}, published {c['published']}, "
+                f"skipped by the rate limit {c['skipped_rate']}, replaced while busy "
+                f"{c['dropped_busy']}, problems {dict(self.health.problems)}")
 
     return EmbeddingNode()
 

@@ -1,161 +1,237 @@
-"""Mapper node: fits the Embedding-NeRF on a keyframe buffer and publishes its renderings.
+"""Mapper node: fits the Embedding-NeRF on keyframes and publishes rendered views.
 
-Colour, depth, pose and the backbone embedding are paired by stamp and offered
-to the core ``Mapper`` as keyframes; it trains in its own thread. A timer
-renders each keyframe once it has been trained on long enough and publishes
-the rendered embedding and its entropy with the keyframe's stamp.
+A thin adapter over the engine's :class:`MapperStage`: colour, depth, pose,
+camera info and the backbone embedding are converted and offered to the stage,
+which pairs them, admits keyframes to the field (trained in its own thread)
+and decides which view to render next (keyframes first, then the newest
+frame). A worker renders it and publishes the view as messages of one stamp:
+rendered embedding, entropy, and the view's depth, colour and camera info, so
+discovery always has the depth a rendering belongs to. Labels coming back on
+/neurncd/labels free the renderer (at most ``max_in_flight`` views unlabelled).
+Services ~/save_map and ~/reset (std_srvs/Trigger); the map is saved every
+``save_period_s`` and at shutdown when ``map_path`` is set, and loaded at start.
 """
 
 from __future__ import annotations
 
 import os
-import threading
 
 from ..core import msgconv
-from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
-from ..core.frame import Frame
-from .common import (PairedFrames, StampMatcher, declare_config, fit_to, image_msg,
-                     output_qos, run_node, sensor_qos)
+from ..core.engine.health import Health  # before rclpy: scipy/torch load first
+from ..core.engine.mapping import MapperStage
+from ..core.engine.offline import mapper_factory
+from ..core.engine.records import EmbeddingRecord, EmbeddingSpec
+from ..core.engine.worker import Worker
+from ..core.field.mapper import Mapper
+from .common import (camera_info_msg, declare_config, diagnostics_msg, header_ns,
+                     image_msg, latched_qos, pose_msg, ros_logger, run_node, sensor_qos,
+                     view_qos)
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
-               "/neurncd/rendered_embedding (32FC<S>) and /neurncd/entropy (32FC1) per "
-               "keyframe. Services ~/save_map and ~/reset (std_srvs/Trigger).")
+               "rendered views: /neurncd/rendered_embedding (32FC<C>), /neurncd/entropy "
+               "(32FC1) with the view's depth, colour and camera info under /neurncd/view/. "
+               "Services ~/save_map and ~/reset (std_srvs/Trigger).")
 
 
 def make_node():
+    import torch
+    from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
-    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-
-    class MapperNode(PairedFrames, Node):
+    class MapperNode(Node):
         def __init__(self) -> None:
             super().__init__("mapper", automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
-            self.throttle = self.node_cfg.log_throttle_s
-            self.mapper = None
-            self.channels = None
-            self._lock = threading.Lock()
-            if self.node_cfg.map_path and os.path.isfile(self.node_cfg.map_path):
-                self.mapper = Mapper.load(self.node_cfg.map_path)
-                self.channels = self.mapper.channels
-                self.get_logger().info(f"loaded map {self.node_cfg.map_path} "
-                                       f"({self.mapper.iterations} iterations)")
-                self.mapper.start()
-            self.matcher = StampMatcher(("color", "depth", "pose", "embedding"),
-                                        int(self.node_cfg.sync_tolerance_ms * 1e6),
-                                        self.node_cfg.queue_size)
+            if self.cfg.mapper.num_threads > 0:
+                torch.set_num_threads(self.cfg.mapper.num_threads)
+            self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
+            self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
+            self.exit_code = 0
+            self.spec: EmbeddingSpec | None = None
+            path = self.node_cfg.map_path
+            if path and os.path.isfile(path):
+                self.stage.load(path, Mapper.load)  # a bad file: clear error, exit 2
+                self.spec = self.stage.spec
+                self.get_logger().info(f"loaded map {path} ({self.stage.mapper.iterations} "
+                                       f"iterations, {len(self.stage.mapper.buffer)} "
+                                       "keyframes)")
+            self.frame_id = self.topics.camera_frame
             q = sensor_qos(self.node_cfg.queue_size)
-            self.create_subscription(Image, self.topics.color,
-                                     lambda m: self.offer("color", m), q)
-            self.create_subscription(Image, self.topics.depth,
-                                     lambda m: self.offer("depth", m), q)
-            self.create_subscription(PoseStamped, self.topics.pose,
-                                     lambda m: self.offer("pose", m), q)
-            self.create_subscription(Image, self.topics.embedding,
-                                     lambda m: self.offer("embedding", m), q)
+            self.create_subscription(Image, self.topics.color, self.on_color, q)
+            self.create_subscription(Image, self.topics.depth, self.on_depth, q)
+            self.create_subscription(PoseStamped, self.topics.pose, self.on_pose, q)
+            self.create_subscription(Image, self.topics.embedding, self.on_embedding,
+                                     view_qos(self.node_cfg.queue_size))
             self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
                                      sensor_qos())
-            self.pub_embedding = self.create_publisher(Image, self.topics.rendered_embedding,
-                                                       output_qos())
-            self.pub_entropy = self.create_publisher(Image, self.topics.entropy, output_qos())
+            self.create_subscription(String, self.topics.embedding_spec, self.on_spec,
+                                     latched_qos())
+            self.create_subscription(Image, self.topics.labels, self.on_labels, sensor_qos(10))
+            depth = 2 * self.node_cfg.max_in_flight + 2
+            self.pub = {name: self.create_publisher(Image, topic, view_qos(depth)) for name, topic in (
+                ("embedding", self.topics.rendered_embedding), ("entropy", self.topics.entropy),
+                ("depth", self.topics.view_depth), ("color", self.topics.view_color))}
+            self.pub_info = self.create_publisher(CameraInfo, self.topics.view_camera_info,
+                                                  view_qos(depth))
+            self.pub_spec = self.create_publisher(String, self.topics.rendered_spec,
+                                                  latched_qos())
+            self.pub_keyframes = self.create_publisher(PoseStamped, self.topics.keyframes,
+                                                       view_qos(50))
+            self.pub_diag = self.create_publisher(DiagnosticArray, self.topics.diagnostics, 10)
             self.create_service(Trigger, "~/save_map", self.on_save)
             self.create_service(Trigger, "~/reset", self.on_reset)
-            # Rendering a keyframe takes up to a second: its own callback group lets the
-            # executor's other threads keep taking frames meanwhile (the core Mapper
-            # renders from a snapshot, so both may run at once).
-            self.create_timer(self.node_cfg.publish_period_s, self.publish_ready,
-                              callback_group=MutuallyExclusiveCallbackGroup())
-            self.keyframes_admitted = self.published = 0
+            self.create_timer(1.0, self.on_tick)
+            if self.node_cfg.map_path and self.node_cfg.save_period_s > 0:
+                self.create_timer(self.node_cfg.save_period_s, self.autosave)
+            if self.spec is not None:
+                self.pub_spec.publish(String(data=self.spec.to_json()))
+            self.worker = Worker("render", self.step, self.health).start()
 
-        def on_frame(self, stamp: int, group: dict) -> None:
-            if self.intrinsics is None:
-                raise ValueError(f"no camera info yet on {self.topics.camera_info}")
-            rgb = msgconv.rgb_from_image(group["color"], self.topics.color)
-            depth = msgconv.depth_from_image(group["depth"], self.topics.depth)
-            pose = msgconv.pose_to_matrix(group["pose"], self.topics.pose)
-            emb = msgconv.image_to_array(group["embedding"], self.topics.embedding)
-            if emb.ndim == 2:
-                emb = emb[:, :, None]
-            if group["embedding"].encoding[:4] != "32FC":
-                raise ValueError(f"{self.topics.embedding}: expected 32FC<S>, got "
-                                 f"{group['embedding'].encoding}")
-            intr = self.intrinsics
-            if rgb.shape[:2] != depth.shape or depth.shape != intr.shape:
-                raise ValueError(f"sizes disagree: colour {rgb.shape[1]}x{rgb.shape[0]}, depth "
-                                 f"{depth.shape[1]}x{depth.shape[0]}, camera info "
-                                 f"{intr.width}x{intr.height}")
-            frame = Frame(stamp, rgb, depth, pose, intr).validate()
-            with self._lock:
-                if self.mapper is None:
-                    self.channels = emb.shape[2]
-                    self.mapper = Mapper(self.cfg.mapper, self.channels)
-                    self.mapper.start()
-                    self.get_logger().info(f"mapper started with {self.channels} channels, "
-                                           f"backend {self.cfg.mapper.backend}")
-                elif emb.shape[2] != self.channels:
-                    raise ValueError(f"embedding has {emb.shape[2]} channels, the map has "
-                                     f"{self.channels}")
-                if self.mapper.add_keyframe(frame, emb):
-                    self.keyframes_admitted += 1
+        # ------------------------------------------------------------ input
+        def _convert(self, kind: str, fn, msg, topic: str):
+            try:
+                return fn(msg, topic)
+            except ValueError as err:
+                self.health.problem(f"bad_{kind}", f"{kind} message skipped: {err}")
+                return None
 
-        def publish_ready(self) -> None:
-            mapper = self.mapper
-            if mapper is None:
+        def _offer(self, stream: str, msg, value) -> None:
+            if value is None:
                 return
-            for kf in mapper.ready_keyframes(self.cfg.mapper.min_iterations_before_publish):
-                intr = kf.intrinsics
-                scale = self.node_cfg.render_scale
-                try:
-                    out = mapper.render(kf.pose, intr, max(1, round(intr.height * scale)),
-                                        max(1, round(intr.width * scale)), depth=kf.depth)
-                except ValueError as err:  # e.g. ~/reset emptied the map meanwhile
-                    self.get_logger().warning(f"keyframe {kf.stamp_ns} not rendered: {err}",
-                                              throttle_duration_sec=self.throttle)
-                    continue
-                emb = fit_to(out["embedding"], intr.height, intr.width)
-                ent = fit_to(out["entropy"], intr.height, intr.width)
-                self.pub_embedding.publish(image_msg(emb, f"32FC{emb.shape[2]}", kf.stamp_ns,
-                                                     "camera", self.topics.rendered_embedding))
-                self.pub_entropy.publish(image_msg(ent, "32FC1", kf.stamp_ns, "camera",
-                                                   self.topics.entropy))
-                self.published += 1
+            for job in self.stage.offer(stream, header_ns(msg), value):
+                if job.keyframe:
+                    self.pub_keyframes.publish(pose_msg(job.frame.pose, job.frame.stamp_ns,
+                                                        self.topics.world_frame))
+            self.worker.notify()
+
+        def on_color(self, msg) -> None:
+            self._offer("color", msg, self._convert("colour", msgconv.rgb_from_image, msg,
+                                                    self.topics.color))
+
+        def on_depth(self, msg) -> None:
+            if msg.header.frame_id:
+                self.frame_id = msg.header.frame_id
+            self._offer("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
+                                                    self.topics.depth))
+
+        def on_pose(self, msg) -> None:
+            self._offer("pose", msg, self._convert("pose", msgconv.pose_to_matrix, msg,
+                                                   self.topics.pose))
+
+        def on_info(self, msg) -> None:
+            intr = self._convert("camera_info", msgconv.camera_info_to_intrinsics, msg,
+                                 self.topics.camera_info)
+            if intr is not None:
+                self.stage.offer_info(intr)
+
+        def on_spec(self, msg) -> None:
+            try:
+                spec = EmbeddingSpec.from_json(msg.data)
+            except ValueError as err:
+                self.health.problem("bad_spec", f"{self.topics.embedding_spec}: {err}")
+                return
+            if self.stage.spec is not None and spec != self.stage.spec:
+                self.health.problem("spec_mismatch", f"the embedding spec {spec.to_json()} "
+                                    f"differs from the map's {self.stage.spec.to_json()}: its "
+                                    "embeddings are refused (reset the map to change backbone)")
+            self.spec = spec
+            self.pub_spec.publish(String(data=spec.to_json()))
+
+        def on_embedding(self, msg) -> None:
+            if self.spec is None:
+                self.health.problem("no_spec", f"embedding skipped: its spec has not arrived "
+                                    f"on {self.topics.embedding_spec} yet")
+                return
+            arr = self._convert("embedding", msgconv.image_to_array, msg,
+                                self.topics.embedding)
+            if arr is None:
+                return
+            arr = arr[:, :, None] if arr.ndim == 2 else arr
+            try:
+                self.spec.check(arr, self.topics.embedding)
+            except ValueError as err:
+                self.health.problem("bad_embedding", f"embedding skipped: {err}")
+                return
+            stamp = header_ns(msg)
+            self._offer("embedding", msg, EmbeddingRecord(stamp, arr, self.spec))
+
+        def on_labels(self, msg) -> None:
+            self.stage.labelled(header_ns(msg))
+            self.worker.notify()
+
+        # ------------------------------------------------------------ output
+        def step(self, cancel) -> bool:
+            job = self.stage.next_view()
+            if job is None:
+                return False
+            try:
+                view = self.stage.render_view(job, cancel)
+            except BaseException:
+                self.stage.release(job)
+                raise
+            stamp, f, fid = view.stamp_ns, view.frame, self.frame_id
+            t = self.topics
+            # Depth and colour first: discovery pairs the view once every piece arrived.
+            self.pub["depth"].publish(image_msg(f.depth, "32FC1", stamp, fid, t.view_depth))
+            self.pub["color"].publish(image_msg(f.rgb, "rgb8", stamp, fid, t.view_color))
+            self.pub_info.publish(camera_info_msg(f.intrinsics, stamp, fid))
+            self.pub["entropy"].publish(image_msg(view.entropy, "32FC1", stamp, fid,
+                                                  t.entropy))
+            self.pub["embedding"].publish(image_msg(view.embedding,
+                                                    f"32FC{view.embedding.shape[2]}", stamp,
+                                                    fid, t.rendered_embedding))
+            self.health.count("published")
+            return True
+
+        def on_tick(self) -> None:
+            if not self.stage.check_training():
+                self.worker.cancel.set()  # no stale output after the field died
+            self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            self.health.gauge("keyframes_in_map", len(self.stage.mapper.buffer)
+                              if self.stage.mapper is not None else 0)
+            self.pub_diag.publish(diagnostics_msg(self, [(self.health, (
+                "frames_paired", "keyframes", "views"))]))
+
+        def autosave(self) -> None:
+            try:
+                if self.stage.save(self.node_cfg.map_path):
+                    self.get_logger().debug(f"saved map to {self.node_cfg.map_path}")
+            except (OSError, RuntimeError, ValueError) as err:
+                self.health.problem("save_failed", f"could not save the map: {err}")
 
         def on_save(self, request, response):
             path = self.node_cfg.map_path or "neurncd_map.pt"
-            if self.mapper is None:
-                response.success, response.message = False, "no map yet: no keyframe admitted"
-                return response
             try:
-                self.mapper.save(path)
-                response.success, response.message = True, f"saved map to {path}"
-            except OSError as err:
+                ok = self.stage.save(path)
+                response.success = ok
+                response.message = (f"saved map to {path}" if ok
+                                    else "no map yet: no keyframe admitted")
+            except (OSError, RuntimeError, ValueError) as err:
                 response.success, response.message = False, f"could not save {path}: {err}"
             return response
 
         def on_reset(self, request, response):
-            if self.mapper is not None:
-                self.mapper.reset()
+            if self.stage.mapper is not None:
+                self.stage.mapper.reset()
             response.success, response.message = True, "map reset"
             return response
 
         def close(self) -> None:
-            if self.mapper is None:
-                return
-            self.mapper.stop()
-            if self.node_cfg.map_path:
+            self.worker.stop(timeout=3.0)
+            self.stage.stop()
+            if self.node_cfg.map_path and self.stage.mapper is not None:
                 try:
-                    self.mapper.save(self.node_cfg.map_path)
+                    self.stage.save(self.node_cfg.map_path)
                     self.get_logger().info(f"saved map to {self.node_cfg.map_path}")
-                except OSError as err:
-                    self.get_logger().error(f"could not save map: {err}")
-            self.get_logger().info(f"keyframes admitted {self.keyframes_admitted}, renderings "
-                                   f"published {self.published}, frames skipped "
-                                   f"{self.skipped}, iterations "
-                                   f"{self.mapper.iterations}")
+                except (OSError, RuntimeError, ValueError) as err:
+                    self.get_logger().error(f"could not save the map: {err}")
+            self.get_logger().info(self.stage.summary() + f", problems "
+                                   f"{dict(self.health.problems)}")
 
     return MapperNode()
 

@@ -1,9 +1,14 @@
 """Replay node: publishes a bag's messages on their topics at their recorded pace.
 
-The raw CDR bytes read from the bag are published as they are (rclpy takes
-serialized messages), so nothing is decoded on the way and any message type
-the bag holds is replayed. Used with the project's own synthetic bags and
-with converted datasets, instead of ros2 bag play (no rosbag2 wheels exist).
+What `ros2 bag play` does, for the bags of this project and any other (there
+are no rosbag2 wheels): the raw CDR bytes are published as they are (rclpy
+takes serialized messages), so nothing is decoded on the way and any message
+type the bag holds is replayed. Before playing it waits, at most
+``replay.wait_for_subscribers_s``, until the contract's input topics in the bag
+have subscribers; then it plays at ``rate`` from ``start_offset_s`` and exits 0
+at the end of the bag (``loop`` plays it again until stopped). A bag that
+cannot be read (missing, truncated, corrupt) ends it with exit code 1 and an
+error naming the file.
 """
 
 from __future__ import annotations
@@ -12,10 +17,10 @@ import importlib
 import threading
 import time
 
-from .common import declare_config, output_qos, run_node
+from .common import declare_config, latched_qos, output_qos, run_node
 
-DESCRIPTION = ("Publishes every message of a bag (mcap or sqlite3) on its recorded topic "
-               "and pace. Set the bag with -p replay.bag:=scene.mcap.")
+DESCRIPTION = ("Publishes every message of a bag (mcap or sqlite3) on its recorded topic and "
+               "pace, then exits. Set the bag with -p replay.bag:=scene.mcap.")
 
 
 def message_class(msgtype: str):
@@ -33,58 +38,113 @@ def message_class(msgtype: str):
 def make_node():
     from rclpy.node import Node
 
-    from ..core.data.bag import iter_raw
+    from ..core.data.bag import BagError, bag_topics, iter_raw
 
     class ReplayNode(Node):
         def __init__(self) -> None:
             super().__init__("replay", automatically_declare_parameters_from_overrides=True)
-            self.cfg = declare_config(self).replay
+            cfg = declare_config(self)
+            self.cfg, t = cfg.replay, cfg.topics
             if not self.cfg.bag:
                 raise ValueError("replay.bag is empty: give a bag with -p replay.bag:=PATH")
-            self.iter_raw = iter_raw
-            self.publishers_by_topic = {}
+            self.done = threading.Event()
+            self.exit_code = 0
             self.published = 0
-            self.finished = threading.Event()
             self._stop = threading.Event()
-            self._thread = threading.Thread(target=self._play, daemon=True, name="replay")
+            self.publishers_by_topic = {}
+            try:
+                topics = bag_topics(self.cfg.bag)
+            except BagError as err:
+                self.fail(str(err))
+                return
+            for topic, (msgtype, _) in topics.items():
+                try:
+                    qos = latched_qos() if msgtype == "std_msgs/msg/String" else output_qos(10)
+                    self.publishers_by_topic[topic] = self.create_publisher(
+                        message_class(msgtype), topic, qos)
+                except ValueError as err:
+                    self.get_logger().warning(f"{topic} is not replayed: {err}")
+            self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
+                                if x in self.publishers_by_topic]
+            self._thread = threading.Thread(target=self._run, daemon=True, name="replay")
             self._thread.start()
 
-        def _publisher(self, topic: str, msgtype: str):
-            pub = self.publishers_by_topic.get(topic)
-            if pub is None:
-                from .common import latched_qos
-                qos = latched_qos() if msgtype == "std_msgs/msg/String" else output_qos(10)
-                pub = self.create_publisher(message_class(msgtype), topic, qos)
-                self.publishers_by_topic[topic] = pub
-            return pub
+        def fail(self, text: str) -> None:
+            self.get_logger().error(f"replay failed: {text}")
+            self.exit_code = 1
+            self.done.set()
 
-        def _play(self) -> None:
-            time.sleep(self.cfg.start_delay_s)
-            while not self._stop.is_set():
-                t0_wall = t0_bag = None
+        def _wait_for_subscribers(self) -> None:
+            limit = self.cfg.wait_for_subscribers_s
+            if limit <= 0 or not self.wait_topics:
+                return
+            end = time.monotonic() + limit
+            while time.monotonic() < end and not self._stop.is_set():
+                missing = [x for x in self.wait_topics
+                           if self.publishers_by_topic[x].get_subscription_count() == 0]
+                if not missing:
+                    return
+                self._stop.wait(0.1)
+            if not self._stop.is_set():
+                self.get_logger().warning(f"no subscriber on {', '.join(missing)} after "
+                                          f"{limit:g} s: playing anyway")
+
+        def _play_once(self) -> None:
+            t0_wall = t0_bag = None
+            offset = int(self.cfg.start_offset_s * 1e9)
+            first = None
+            for topic, _msgtype, stamp, raw in iter_raw(self.cfg.bag):
+                if self._stop.is_set():
+                    return
+                first = stamp if first is None else first
+                if stamp - first < offset:
+                    continue
+                pub = self.publishers_by_topic.get(topic)
+                if pub is None:
+                    continue
+                if t0_bag is None:
+                    t0_wall, t0_bag = time.monotonic(), stamp
+                due = t0_wall + (stamp - t0_bag) / 1e9 / self.cfg.rate
+                delay = due - time.monotonic()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                pub.publish(raw)
+                self.published += 1
+
+        def _run(self) -> None:
+            self._wait_for_subscribers()
+            if self.cfg.delay_s > 0 and self._stop.wait(self.cfg.delay_s):
+                return
+            t0 = time.monotonic()
+            try:
+                while not self._stop.is_set():
+                    self._play_once()
+                    if not self.cfg.loop:
+                        break
+            except BagError as err:
+                self.fail(str(err))
+                return
+            self.get_logger().info(f"replay finished: {self.published} messages in "
+                                   f"{time.monotonic() - t0:.1f} s")
+            self._flush()
+            self.done.set()
+
+        def _flush(self, timeout_s: float = 2.0) -> None:
+            """Wait until reliable subscribers acknowledged the last messages, as a process
+            that exits right after publishing could otherwise lose them."""
+            from rclpy.duration import Duration
+
+            for pub in self.publishers_by_topic.values():
                 try:
-                    for topic, msgtype, stamp, raw in self.iter_raw(self.cfg.bag):
-                        if self._stop.is_set():
-                            return
-                        if t0_bag is None:
-                            t0_wall, t0_bag = time.monotonic(), stamp
-                        due = t0_wall + (stamp - t0_bag) / 1e9 / self.cfg.rate
-                        delay = due - time.monotonic()
-                        if delay > 0 and self._stop.wait(delay):
-                            return
-                        self._publisher(topic, msgtype).publish(raw)
-                        self.published += 1
-                except ValueError as err:
-                    self.get_logger().error(f"replay stopped: {err}")
-                    break
-                if not self.cfg.loop:
-                    break
-            self.get_logger().info(f"replay finished: {self.published} messages")
-            self.finished.set()
+                    pub.wait_for_all_acked(Duration(seconds=timeout_s))
+                except Exception:  # noqa: BLE001 - best effort; never block the exit
+                    pass
 
         def close(self) -> None:
             self._stop.set()
-            self._thread.join(timeout=2)
+            thread = getattr(self, "_thread", None)
+            if thread is not None:
+                thread.join(timeout=2)
 
     return ReplayNode()
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..params import param
 from ..sync import StampSync
-from .health import Health
+from .health import Health, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec
 
 
@@ -53,7 +53,8 @@ class EmbeddingStage:
         self.spec: EmbeddingSpec = backbone.spec
         self.health = health or Health("embedding", throttle_s=cfg.log_throttle_s)
         self.sync = StampSync(("depth", "color"), int(cfg.sync_tolerance_ms * 1e6),
-                              cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size))
+                              cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size),
+                              on_anomaly=sync_reporter(self.health))
         self._lock = threading.Lock()
         self._latest: tuple[int, np.ndarray, np.ndarray] | None = None
         self._last_stamp: int | None = None

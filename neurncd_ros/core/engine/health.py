@@ -135,3 +135,15 @@ class Health:
                 level = OK
                 message = self.state + (f": {self.detail}" if self.detail else "")
         return {"level": level, "message": message, "values": values}
+
+
+def sync_reporter(health, names: dict[str, str] | None = None):
+    """An ``on_anomaly`` callback for :class:`..sync.StampSync` that reports to ``health``."""
+    texts = {"duplicate": "a second message with stamp {s} on {n}: dropped",
+             "out_of_order": "{n}: stamp {s} is older than a frame already paired: dropped",
+             "time_reset": "{n}: stamps went back (bag loop or clock reset): pairing restarts"}
+
+    def report(stream: str, reason: str, stamp_ns: int) -> None:
+        name = (names or {}).get(stream, stream)
+        health.problem(f"{reason}", texts[reason].format(s=stamp_ns, n=name))
+    return report

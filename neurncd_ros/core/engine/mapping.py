@@ -14,11 +14,11 @@ A view is rendered at the frame's pose with its measured depth (depth-guided
 samples) at ``render_scale``. Where the field has not learnt the scene yet,
 it would render noise, and noise has high entropy, i.e. looks novel. So the
 view blends the field with the frame's own backbone embedding by *coverage*:
-the sum, over the keyframes that see a pixel's 3D point (projection and depth
-test), of their maturity (training iterations since admission /
-``mature_iterations``, at most 1); at ``full_coverage`` the field alone is
-used. The first views of a new scene are therefore the backbone's, and the
-field takes over where it has been trained.
+the highest maturity among the keyframes that see a pixel's 3D point
+(projection and depth test), a keyframe's maturity being its training
+iterations since admission / ``mature_iterations`` (at most 1); at
+``full_coverage`` the field alone is used. The first views of a new scene are
+therefore the backbone's, and the field takes over where it has been trained.
 
 Flow control: at most ``max_in_flight`` views are published and not yet
 labelled (the node sees labels come back on /neurncd/labels); the renderer
@@ -41,11 +41,11 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, backproject, project
+from ..camera import Intrinsics, backproject, project, rays
 from ..frame import Frame
 from ..params import param
 from ..sync import StampSync
-from .health import Health
+from .health import Health, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 
 
@@ -72,12 +72,17 @@ class MapperNodeConfig:
     fallback: str = param("backbone", "where the field has not learnt a point yet: blend in "
                           "the frame's backbone embedding by coverage ('backbone'), or render "
                           "the field everywhere ('none')", choices=("backbone", "none"))
-    mature_iterations: int = param(100, "training iterations after which a keyframe counts "
-                                   "fully towards the coverage of the points it sees",
+    mature_iterations: int = param(1000, "training iterations after which a keyframe's "
+                                   "points are rendered from the field alone (the fast field "
+                                   "matches the backbone after about as many, "
+                                   "bench/results/field.json)",
                                    lo=1, hi=10 ** 7)
     full_coverage: float = param(1.0, "coverage at which a pixel is taken from the field "
-                                 "alone (sum of the maturities of the keyframes seeing it)",
-                                 lo=0.01, hi=100.0)
+                                 "alone (the best maturity of the keyframes seeing it)",
+                                 lo=0.01, hi=1.0)
+    min_field_weight: float = param(0.1, "pixels whose field weight is below this take the "
+                                    "backbone's embedding alone and are not rendered (the "
+                                    "render is the stage's main cost)", lo=0.0, hi=1.0)
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
@@ -94,6 +99,11 @@ class MapperNodeConfig:
     queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
+
+
+RENDER_BATCH = 4096
+"""Rays rendered between two checks of the cancel flag (a node stops within a fraction of a
+second even mid-render)."""
 
 
 @dataclasses.dataclass
@@ -117,7 +127,7 @@ def resize_to(arr: np.ndarray, height: int, width: int,
 
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
              tolerance: float) -> np.ndarray:
-    """Per point, the sum of the maturities of the keyframes that see it.
+    """Per point, the highest maturity among the keyframes that see it.
 
     A keyframe sees a world point if it projects into its image in front of
     the camera and the keyframe's measured depth there agrees (within
@@ -135,7 +145,7 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
         zk = np.zeros(len(points), np.float32)
         zk[ok] = kf.depth[vi[ok], ui[ok]]
         seen = ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
-        cov += m * seen
+        np.maximum(cov, m * seen, out=cov)
     return cov
 
 
@@ -153,7 +163,8 @@ class MapperStage:
         self._clock = clock
         self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
         self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
-                              cfg.sync_horizon_s, capacity=max(4, cfg.queue_size), clock=clock)
+                              cfg.sync_horizon_s, capacity=max(4, cfg.queue_size), clock=clock,
+                              on_anomaly=sync_reporter(self.health))
         self.mapper = None
         self.spec: EmbeddingSpec | None = None
         self.intrinsics: Intrinsics | None = None
@@ -229,9 +240,9 @@ class MapperStage:
                                 f"{self.intrinsics} to {intrinsics}: new frames use it")
         self.intrinsics = intrinsics
 
-    def offer(self, stream: str, stamp_ns: int, value: Any) -> bool:
-        """One input message (EmbeddingRecord, rgb, depth or 4x4 pose); True when it
-        completed a frame that was admitted and queued for rendering."""
+    def offer(self, stream: str, stamp_ns: int, value: Any) -> list[ViewJob]:
+        """One input message (EmbeddingRecord, rgb, depth or 4x4 pose); the frames it
+        completed that were admitted and queued for rendering."""
         with self._lock:
             groups = self.sync.add(stream, stamp_ns, value)
         starved = self.sync.starved()
@@ -240,7 +251,7 @@ class MapperStage:
                                 "arrives there while the other inputs do (check the topic "
                                 "names, that the embedding node runs, and that stamps agree "
                                 f"within {self.cfg.sync_tolerance_ms:g} ms)")
-        queued = False
+        queued = []
         for stamp, g in groups:
             self.health.count("frames_paired")
             intr = self.intrinsics
@@ -253,7 +264,9 @@ class MapperStage:
             except ValueError as err:
                 self.health.problem("frame_mismatch", f"frame {stamp} skipped: {err}")
                 continue
-            queued |= self.admit(frame, g["embedding"]) is not None
+            job = self.admit(frame, g["embedding"])
+            if job is not None:
+                queued.append(job)
         return queued
 
     # ------------------------------------------------------------ keyframes
@@ -300,7 +313,7 @@ class MapperStage:
                 job = self._keyframe_jobs.popleft()
             elif self._latest is not None:
                 job, self._latest = self._latest, None
-                if now - job.enqueued > self.cfg.stale_after_s:
+                if self.online and now - job.enqueued > self.cfg.stale_after_s:
                     self.health.count("skipped_stale")
                     return None
             else:
@@ -349,7 +362,8 @@ class MapperStage:
         return out
 
     def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
-        """Render the job's frame at its pose and measured depth; blend by coverage."""
+        """Render the job's frame at its pose and measured depth where the field has learnt
+        something (coverage > 0), and blend it there with the frame's backbone embedding."""
         from ..uncertainty import entropy
 
         if not self.check_training():
@@ -361,14 +375,25 @@ class MapperStage:
         weight = (self.field_weight(f, h, w) if self.cfg.fallback == "backbone"
                   else np.ones((h, w), np.float32))
         iterations = mapper.iterations
-        if float(weight.max()) > 0.0:
+        emb = backbone.copy()
+        weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
+        sel = weight > 0.0
+        if sel.any():  # render only where the field has learnt enough to count
+            v, u = np.nonzero(sel)
+            intr = f.intrinsics.scaled(w, h)
+            origins, dirs = rays(f.pose, intr, u, v)
+            z = resize_to(f.depth, h, w, cv2.INTER_NEAREST)[v, u]
             paused = mapper.paused() if hasattr(mapper, "paused") else contextlib.nullcontext()
+            parts = []
             with paused:
-                out = mapper.render(f.pose, f.intrinsics, h, w, depth=f.depth,
-                                    **({"cancel": cancel} if cancel is not None else {}))
-            emb = weight[..., None] * out["embedding"] + (1.0 - weight[..., None]) * backbone
-        else:  # nothing learnt yet anywhere in view: the backbone's embedding as it is
-            emb = backbone
+                for i in range(0, len(u), RENDER_BATCH):
+                    if cancel is not None and cancel.is_set():
+                        raise RuntimeError("rendering cancelled (shutting down)")
+                    parts.append(mapper.render_rays(origins[i:i + RENDER_BATCH],
+                                                    dirs[i:i + RENDER_BATCH],
+                                                    z[i:i + RENDER_BATCH])["embedding"])
+            wt = weight[sel][:, None]
+            emb[sel] = wt * np.concatenate(parts) + (1.0 - wt) * backbone[sel]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])
         self.health.count("views")

@@ -1,0 +1,177 @@
+"""Discovery stage: a view (depth, colour, rendered embedding, entropy) in, labels out.
+
+Online the pieces of a view arrive as messages with one stamp, published
+together by the mapper, so they pair at once; complete views wait in a
+bounded first-in first-out queue (the mapper's flow control keeps it short).
+The embedding's meaning (which NYU-13 class each logit channel predicts) comes
+with the view as its :class:`EmbeddingSpec`; a view that arrives before the
+spec is known waits for it (``spec_wait_s``) rather than being guessed.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from ..camera import Intrinsics
+from ..params import param
+from ..sync import StampSync
+from .health import Health, sync_reporter
+from .mapping import resize_to
+from .records import EmbeddingSpec, LabelsRecord, ViewRecord
+
+
+@dataclasses.dataclass(frozen=True)
+class DiscoveryNodeConfig:
+    """The discovery stage (the science is under `segmentation`, `modulation`, `mcl` and
+    `discovery`)."""
+
+    queue_size: int = param(8, "complete views waiting to be labelled at most (the oldest "
+                            "is dropped beyond)", lo=1, hi=1000)
+    sync_tolerance_ms: float = param(1.0, "max stamp difference between the messages of one "
+                                     "view (the mapper stamps them alike)", lo=0.0, hi=1000.0,
+                                     unit="ms")
+    sync_horizon_s: float = param(10.0, "how long a piece of a view waits for the rest",
+                                  lo=0.01, hi=600.0, unit="s")
+    spec_wait_s: float = param(30.0, "how long views wait for the embedding spec before "
+                               "they are dropped", lo=0.0, hi=3600.0, unit="s")
+    log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
+                                  "problem", lo=0.0, hi=3600.0, unit="s")
+
+
+@dataclasses.dataclass
+class ViewInput:
+    """A view as discovery needs it (no pose): what arrives over ROS."""
+
+    stamp_ns: int
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    embedding: np.ndarray
+    entropy: np.ndarray
+    rgb: np.ndarray | None
+    keyframe: bool = False
+    arrived: float = 0.0
+
+    @classmethod
+    def of(cls, view: ViewRecord) -> "ViewInput":
+        f = view.frame
+        return cls(f.stamp_ns, f.depth, f.intrinsics, view.embedding, view.entropy, f.rgb,
+                   view.keyframe)
+
+
+class DiscoveryStage:
+    """Segments, modulates, clusters and names; one Discoverer per embedding spec."""
+
+    STREAMS = ("depth", "embedding", "entropy", "color", "info")
+
+    def __init__(self, cfg, node_cfg: DiscoveryNodeConfig = DiscoveryNodeConfig(),
+                 health: Health | None = None, clock: Callable[[], float] = time.monotonic
+                 ) -> None:
+        """``cfg``: an object with the ``discovery``, ``mcl``, ``segmentation`` and
+        ``modulation`` sections (the whole configuration will do)."""
+        self.cfg = cfg
+        self.node_cfg = node_cfg
+        self._clock = clock
+        self.health = health or Health("discovery", throttle_s=node_cfg.log_throttle_s,
+                                       clock=clock)
+        self.sync = StampSync(self.STREAMS, int(node_cfg.sync_tolerance_ms * 1e6),
+                              node_cfg.sync_horizon_s, capacity=4 * node_cfg.queue_size,
+                              clock=clock, on_anomaly=sync_reporter(self.health))
+        self.spec: EmbeddingSpec | None = None
+        self.discoverer = None
+        self._queue: collections.deque[ViewInput] = collections.deque()
+        self._lock = threading.Lock()
+        self.health.set_state("waiting", "no view yet")
+
+    def set_spec(self, spec: EmbeddingSpec) -> None:
+        """The meaning of the embedding channels; a new spec starts a new discovery."""
+        if spec != self.spec:
+            if self.spec is not None:
+                self.health.problem("spec_changed", f"embedding spec changed from "
+                                    f"{self.spec.to_json()} to {spec.to_json()}: "
+                                    "discovery restarts")
+            from ..discovery.labeller import Discoverer
+            c = self.cfg
+            self.discoverer = Discoverer(c.discovery, spec.ids(), mcl_cfg=c.mcl,
+                                         seg_cfg=c.segmentation, mod_cfg=c.modulation)
+            self.spec = spec
+
+    # ------------------------------------------------------------ online input
+    def offer(self, stream: str, stamp_ns: int, value: Any) -> bool:
+        """One piece of a view; True when a view is complete and queued."""
+        with self._lock:
+            groups = self.sync.add(stream, stamp_ns, value)
+            for stamp, g in groups:
+                self.health.count("views_received")
+                item = ViewInput(stamp, g["depth"], g["info"], g["embedding"], g["entropy"],
+                                 g["color"], arrived=self._clock())
+                self._queue.append(item)
+                if len(self._queue) > self.node_cfg.queue_size:
+                    old = self._queue.popleft()
+                    self.health.problem("queue_full", f"view {old.stamp_ns} dropped: more "
+                                        f"than {self.node_cfg.queue_size} views wait")
+            return bool(groups)
+
+    def take(self) -> ViewInput | None:
+        """The oldest complete view ready to label (None while the spec is unknown)."""
+        with self._lock:
+            if not self._queue:
+                return None
+            if self.spec is None:
+                old = self._queue[0]
+                if self._clock() - old.arrived > self.node_cfg.spec_wait_s:
+                    self._queue.popleft()
+                    self.health.problem("no_spec", f"view {old.stamp_ns} dropped: no "
+                                        "embedding spec received (is the embedding node "
+                                        "running?)")
+                return None
+            return self._queue.popleft()
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    # ------------------------------------------------------------ the work
+    def label(self, view: ViewInput) -> LabelsRecord:
+        """Label one view at its depth frame's size (ValueError on inconsistent input)."""
+        if self.spec is None:
+            raise ValueError("no embedding spec: the meaning of the channels is unknown")
+        spec = self.spec
+        depth = np.asarray(view.depth, np.float32)
+        if depth.ndim != 2:
+            raise ValueError(f"depth must be (H, W), got {depth.shape}")
+        if view.intrinsics.shape != depth.shape:
+            raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]} but its camera info "
+                             f"says {view.intrinsics.width}x{view.intrinsics.height}")
+        emb = spec.check(view.embedding, "rendered embedding")
+        ent = np.asarray(view.entropy, np.float32)
+        if ent.shape != emb.shape[:2]:
+            raise ValueError(f"entropy is {ent.shape} but the embedding is {emb.shape[:2]}")
+        if not (np.all(np.isfinite(emb)) and np.all(np.isfinite(ent))):
+            raise ValueError("rendered embedding or entropy has non-finite values")
+        h, w = depth.shape
+        logits = resize_to(np.ascontiguousarray(emb[..., : spec.logit_channels], np.float32),
+                           h, w)
+        ent = resize_to(ent, h, w)
+        rgb = None
+        if view.rgb is not None and self.cfg.segmentation.colour_edges:
+            rgb = view.rgb
+            if rgb.shape[:2] != (h, w):
+                rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+        labels = self.discoverer.process(depth, view.intrinsics, logits, ent, view.stamp_ns,
+                                         rgb)
+        self.health.count("labelled")
+        self.health.set_state("running")
+        return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)
+
+    def label_view(self, view: ViewRecord) -> LabelsRecord:
+        """Offline: label a view record from the mapper stage directly."""
+        self.set_spec(view.spec)
+        return self.label(ViewInput.of(view))

@@ -1,0 +1,262 @@
+"""The online engine driven offline, in one process, on a stream of frames.
+
+``neurncd run``, ``make demo`` and the benchmarks call this. The same stages
+as the ROS nodes run in the same order with the same policies (the embedding
+stage's rate gate, the field's keyframe admission, keyframes always rendered,
+the coverage blend, discovery on every view); what the live graph decides by
+the wall clock is decided here by the frames' stamps, so a run is
+reproducible and describes what the nodes publish:
+
+- the field trains ``run.training_rate_hz`` iterations per second of stream
+  time (what the mapper node reaches beside the other nodes on 2 cores);
+- besides every keyframe, one frame per ``1 / run.view_rate_hz`` seconds of
+  stream time is rendered and labelled (the live graph's label rate); the
+  others are skipped, as the mapper node skips frames when a newer one waits.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from .. import classes
+from ..frame import Frame
+from ..params import param
+from .discovery import DiscoveryStage
+from .embedding import EmbeddingStage
+from .mapping import MapperStage, resize_to
+from .records import EmbeddingRecord, LabelsRecord, ViewRecord
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """The offline engine (`neurncd run`, the benchmarks): the live graph's schedule, in
+    stream time, without DDS."""
+
+    training_rate_hz: float = param(6.0, "field training iterations per second of stream "
+                                    "time, as the mapper node trains beside the other nodes "
+                                    "on 2 cores (bench/graph.py measures it)", lo=0.0,
+                                    hi=100000.0, unit="Hz")
+    view_rate_hz: float = param(2.5, "frames per second of stream time rendered and labelled "
+                                "besides the keyframes (the live graph's label rate; 0 = "
+                                "keyframes only)", lo=0.0, hi=1000.0, unit="Hz")
+    max_frames: int = param(0, "stop after this many input frames (0 = all)", lo=0,
+                            hi=10_000_000)
+    overlays: int = param(6, "how many labelled frames get a PNG overlay", lo=0, hi=10_000)
+    out_dir: str = param("out/run", "where overlays and metrics.json are written")
+
+
+@dataclasses.dataclass
+class Output:
+    """One labelled frame and what led to it."""
+
+    frame: Frame
+    embedding: EmbeddingRecord
+    view: ViewRecord
+    labels: LabelsRecord
+
+    def backbone_ids(self) -> np.ndarray:
+        """The backbone's own argmax labels at the frame's size (the 'backbone alone' row)."""
+        h, w = self.frame.depth.shape
+        logits = resize_to(self.embedding.logits.astype(np.float32), h, w)
+        return self.embedding.spec.ids()[np.argmax(logits, axis=2)]
+
+
+def mapper_factory(cfg) -> Callable[[int], Any]:
+    """channels -> a new Mapper configured by ``cfg`` (the whole configuration)."""
+    from ..field.mapper import Mapper
+
+    if hasattr(Mapper, "from_config"):
+        return lambda channels: Mapper.from_config(cfg, channels)
+    return lambda channels: Mapper(cfg.mapper, channels)
+
+
+class OfflineEngine:
+    """Feed frames in stamp order; get the labelled frames out."""
+
+    def __init__(self, cfg, backbone=None, make_mapper: Callable[[int], Any] | None = None
+                 ) -> None:
+        from ..backbone.backbone import load_backbone
+
+        self.cfg = cfg
+        self.backbone = backbone if backbone is not None else load_backbone(cfg.backbone)
+        self.embedding = EmbeddingStage(self.backbone, cfg.embedding_node)
+        self.mapping = MapperStage(cfg.mapper_node, make_mapper or mapper_factory(cfg),
+                                   online=False)
+        self.discovery = DiscoveryStage(cfg, cfg.discovery_node)
+        self.frames_in = 0
+        self._t0: int | None = None
+        self._trained = 0
+        self._last_view: int | None = None
+        self.seconds = dict.fromkeys(("backbone", "training", "rendering", "discovery"), 0.0)
+
+    @property
+    def mapper(self):
+        return self.mapping.mapper
+
+    def _train_until(self, stamp_ns: int) -> None:
+        due = int(self.cfg.run.training_rate_hz * (stamp_ns - self._t0) * 1e-9)
+        if due > self._trained and self.mapper is not None and len(self.mapper.buffer):
+            t = time.perf_counter()
+            self.mapper.step(due - self._trained)
+            self.seconds["training"] += time.perf_counter() - t
+        self._trained = max(self._trained, due)
+
+    def feed(self, frame: Frame) -> list[Output]:
+        """One input frame (with pose); the labelled outputs it produced (0 or 1)."""
+        frame.validate()
+        self.frames_in += 1
+        if self._t0 is None:
+            self._t0 = frame.stamp_ns
+        if not self.embedding.wanted(frame.stamp_ns):
+            return []
+        t = time.perf_counter()
+        rec = self.embedding.embed(frame.stamp_ns, frame.rgb, frame.depth)
+        self.seconds["backbone"] += time.perf_counter() - t
+        job = self.mapping.admit(frame, rec)
+        self._train_until(frame.stamp_ns)
+        if job is None:
+            return []
+        rate = self.cfg.run.view_rate_hz
+        due = rate > 0 and (self._last_view is None
+                            or (frame.stamp_ns - self._last_view) * 1e-9 >= 0.999 / rate)
+        if not job.keyframe and not due:
+            return []
+        job = self.mapping.next_view()
+        if job is None:
+            return []
+        if not job.keyframe:
+            self._last_view = frame.stamp_ns
+        t = time.perf_counter()
+        view = self.mapping.render_view(job)
+        self.seconds["rendering"] += time.perf_counter() - t
+        t = time.perf_counter()
+        labels = self.discovery.label_view(view)
+        self.seconds["discovery"] += time.perf_counter() - t
+        self.mapping.labelled(frame.stamp_ns)
+        return [Output(frame, rec, view, labels)]
+
+    def run(self, frames: Iterable[Frame], total: int | None = None, progress: bool = True
+            ) -> Iterator[Output]:
+        """:meth:`feed` over a stream, with a progress bar."""
+        from tqdm import tqdm
+
+        bar = tqdm(frames, total=total, desc="run", unit="frame", disable=not progress)
+        for frame in bar:
+            if self.cfg.run.max_frames and self.frames_in >= self.cfg.run.max_frames:
+                break
+            yield from self.feed(frame)
+            if self.mapper is not None:
+                bar.set_postfix(iterations=self.mapper.iterations,
+                                keyframes=len(self.mapping.keyframe_stamps))
+        bar.close()
+
+
+# ---------------------------------------------------------------- neurncd run
+
+def overlay(out: Output) -> np.ndarray:
+    """One picture per labelled frame: rgb | ground truth | backbone | labels | entropy."""
+    f = out.frame
+    h, w = f.depth.shape
+    tiles = [f.rgb]
+    if f.semantic is not None:
+        tiles.append(classes.colourise(f.semantic))
+    tiles.append(classes.colourise(out.backbone_ids()))
+    tiles.append(classes.colourise(out.labels.labels))
+    ent = resize_to(out.view.entropy, h, w) / max(np.log(out.view.spec.logit_channels), 1e-6)
+    ent = cv2.applyColorMap(np.clip(ent * 255, 0, 255).astype(np.uint8), cv2.COLORMAP_MAGMA)
+    tiles.append(ent[:, :, ::-1])
+    return np.concatenate(tiles, axis=1)
+
+
+def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | None = None,
+               progress: bool = True) -> dict[str, Any]:
+    """Run the engine on frames; write metrics.json and overlays; return the result."""
+    from ..discovery.metrics import Evaluator
+
+    out = Path(out_dir)
+    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    engine = OfflineEngine(cfg)
+    ev, ev_backbone = Evaluator(), Evaluator()
+    n_labelled = n_keyframes = n_evaluated = n_overlays = 0
+    for o in engine.run(frames, total, progress):
+        n_labelled += 1
+        n_keyframes += o.view.keyframe
+        if o.frame.semantic is not None:
+            ev.update(o.labels.labels, o.frame.semantic)
+            ev_backbone.update(o.backbone_ids(), o.frame.semantic)
+            n_evaluated += 1
+        if n_overlays < cfg.run.overlays:
+            cv2.imwrite(str(out / "overlays" / f"{o.frame.stamp_ns}.png"),
+                        overlay(o)[:, :, ::-1])
+            n_overlays += 1
+    if engine.frames_in == 0:
+        raise ValueError("no frames to run on")
+    mapper = engine.mapper
+    result: dict[str, Any] = {
+        "frames": engine.frames_in, "labelled": n_labelled, "keyframes_labelled": n_keyframes,
+        "keyframes": len(engine.mapping.keyframe_stamps),
+        "iterations": mapper.iterations if mapper is not None else 0,
+        "backend": cfg.mapper.backend, "backbone": cfg.backbone.kind,
+        "seconds": round(time.perf_counter() - t_start, 2),
+        **{f"seconds_{k}": round(v, 2) for k, v in engine.seconds.items()},
+        "classes": {str(k): v for k, v in (engine.discovery.discoverer.classes().items()
+                                          if engine.discovery.discoverer else [])},
+        "out_dir": str(out),
+    }
+    if n_evaluated:
+        result["metrics"] = ev.result()
+        result["metrics_backbone_only"] = ev_backbone.result()
+    (out / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    return result
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    raise TypeError(type(obj).__name__)
+
+
+def run_bag(bag: str | Path, cfg, out_dir: str | Path) -> dict[str, Any]:
+    """``neurncd run --bag``: synchronised frames from a bag through the engine."""
+    from ..data.bag import FrameReader
+
+    reader = FrameReader.from_config(bag, cfg.topics, cfg.sync)
+    result = run_frames(reader, cfg, out_dir, total=len(reader))
+    result["bag"] = str(bag)
+    result["dropped"] = len(reader.dropped)
+    result["reader"] = reader.summary()
+    return result
+
+
+def summary(result: dict[str, Any]) -> str:
+    """A few lines a person reads after a run."""
+    lines = [f"ran {result['frames']} frames ({result['labelled']} labelled, "
+             f"{result['keyframes_labelled']} of {result['keyframes']} keyframes) in "
+             f"{result['seconds']} s: backbone {result['seconds_backbone']} s, field "
+             f"training {result['seconds_training']} s ({result['iterations']} iterations, "
+             f"{result['backend']}), rendering {result['seconds_rendering']} s, discovery "
+             f"{result['seconds_discovery']} s"]
+    m = result.get("metrics")
+    if m:
+        b = result["metrics_backbone_only"]
+        lines.append(f"NeurNCD: mIoU all {m['miou_all']:.1f}, known {m['miou_known']:.1f}, "
+                     f"novel {m['miou_novel']:.1f}; Total Acc {m['total_acc']:.1f}, Avg Acc "
+                     f"{m['avg_acc']:.1f}; SCIM assigned mIoU {m['assigned_miou']:.1f} (%)")
+        lines.append(f"backbone alone (known classes only): mIoU known "
+                     f"{b['miou_known']:.1f}, Total Acc {b['total_acc']:.1f} (%)")
+    novel = [k for k, v in result.get("classes", {}).items() if v.get("kind") == "novel"]
+    lines.append(f"classes: {len(result.get('classes', {}))} ({len(novel)} novel: "
+                 f"{', '.join(novel[:8])}{'...' if len(novel) > 8 else ''})")
+    lines.append(f"wrote {result['out_dir']}/metrics.json and overlays/*.png "
+                 "(rgb | ground truth | backbone | NeurNCD labels | entropy)")
+    return "\n".join(lines)

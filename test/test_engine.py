@@ -1,0 +1,290 @@
+"""The online engine's stages, in one process: health, embedding, mapper, discovery, offline.
+
+Real inputs throughout: synthetic RGB-D frames with ground truth, the shipped
+default backbone and a real (small) Embedding-NeRF.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from neurncd_ros import config, synth
+from neurncd_ros.core import classes, uncertainty
+from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
+from neurncd_ros.core.engine import health as H
+from neurncd_ros.core.engine.discovery import DiscoveryStage, ViewInput
+from neurncd_ros.core.engine.embedding import EmbeddingNodeConfig, EmbeddingStage
+from neurncd_ros.core.engine.mapping import MapperNodeConfig, MapperStage, resize_to
+from neurncd_ros.core.engine.offline import OfflineEngine, mapper_factory
+from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
+
+MS = 1_000_000
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return config.load(None, {"mapper.rays_per_iteration": 256})
+
+
+@pytest.fixture(scope="module")
+def backbone():
+    return load_backbone(BackboneConfig(num_threads=1))
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """Two seconds of a held-out room at 30 Hz, 96x72."""
+    return list(synth.generate(1002, 60, synth.SynthConfig(width=96, height=72)))
+
+
+# ------------------------------------------------------------------ health
+
+def test_health_throttles_each_kind_of_problem_on_its_own():
+    clock, lines = Clock(), []
+    h = H.Health("x", lambda level, text: lines.append((level, text)), throttle_s=5.0,
+                 window_s=10.0, clock=clock)
+    h.problem("bad_depth", "depth A")
+    h.problem("bad_depth", "depth B")          # throttled
+    h.problem("bad_pose", "pose A")            # another kind: logged at once
+    clock.t = 6.0
+    h.problem("bad_depth", "depth C")
+    assert [t for _, t in lines] == ["depth A", "pose A",
+                                     "depth C (1 more of this kind since the last report)"]
+    assert h.problems == {"bad_depth": 3, "bad_pose": 1}
+    assert h.snapshot()["level"] == H.WARN
+    clock.t = 30.0
+    snap = h.snapshot()
+    assert snap["level"] == H.OK and snap["values"]["problem.bad_depth"] == "3"
+    h.fail("training", "thread died")
+    h.set_state("running")                     # an error is final
+    snap = h.snapshot()
+    assert snap["level"] == H.ERROR and "thread died" in snap["message"]
+    assert lines[-1][0] == H.ERROR
+
+
+def test_health_rates_count_events_per_second():
+    clock = Clock()
+    h = H.Health("x", throttle_s=1.0, window_s=10.0, clock=clock)
+    for i in range(21):
+        clock.t = i * 0.5
+        h.count("labelled")
+    assert h.rate("labelled") == pytest.approx(2.1, rel=0.01)
+    clock.t = 100.0
+    assert h.rate("labelled") == 0.0 and h.counts["labelled"] == 21
+
+
+# ------------------------------------------------------------------ embedding
+
+def test_embedding_stage_pairs_keeps_the_newest_and_gates_by_stamp(backbone, frames):
+    st = EmbeddingStage(backbone, EmbeddingNodeConfig(max_rate_hz=10.0, output_scale=0.5))
+    assert st.spec.channel_to_id == tuple(classes.KNOWN_IDS)
+    for f in frames[:3]:
+        st.offer("depth", f.stamp_ns, f.depth)
+        st.offer("color", f.stamp_ns, f.rgb)
+    stamp, rgb, depth = st.take()
+    assert stamp == frames[2].stamp_ns and st.take() is None
+    assert st.health.counts["dropped_busy"] == 2
+    rec = st.embed(stamp, rgb, depth)
+    assert isinstance(rec, EmbeddingRecord) and rec.spec == st.spec
+    assert rec.embedding.shape == (36, 48, 9) and rec.embedding.dtype == np.float32
+    # 30 Hz stamps gated at 10 Hz: every third frame after the embedded one.
+    picked = []
+    for f in frames[3:12]:
+        if st.wanted(f.stamp_ns):
+            st.embed(f.stamp_ns, f.rgb, f.depth)
+            picked.append(f)
+    assert picked == frames[5:12:3]
+    with pytest.raises(ValueError, match="registered to colour"):
+        st.embed(stamp, rgb[:, :40], depth)
+
+
+# ------------------------------------------------------------------ mapper
+
+def _stage(cfg, **node) -> MapperStage:
+    node_cfg = dataclasses.replace(cfg.mapper_node, **node)
+    return MapperStage(node_cfg, mapper_factory(cfg), online=False)
+
+
+def _record(backbone, f) -> EmbeddingRecord:
+    return EmbeddingRecord(f.stamp_ns, backbone.embed(f.rgb, f.depth), backbone.spec)
+
+
+def test_mapper_stage_serves_keyframes_first_then_the_newest_frame(cfg, backbone, frames):
+    st = _stage(cfg, max_in_flight=2)
+    jobs = [st.admit(f, _record(backbone, f)) for f in frames[:40:3]]
+    kf = [j.frame.stamp_ns for j in jobs if j.keyframe]
+    other = [j.frame.stamp_ns for j in jobs if not j.keyframe]
+    assert kf[0] == frames[0].stamp_ns and len(kf) >= 2 and len(other) >= 2
+    assert st.keyframe_stamps == kf
+    assert st.health.counts["skipped_newer"] == len(other) - 1
+    first, second = st.next_view(), st.next_view()
+    assert [first.frame.stamp_ns, second.frame.stamp_ns] == kf[:2]
+    assert st.next_view() is None, "two views in flight: the renderer waits"
+    st.labelled(first.frame.stamp_ns)
+    rest = []
+    while (job := st.next_view()) is not None:
+        rest.append(job.frame.stamp_ns)
+        st.labelled(job.frame.stamp_ns)
+    assert rest == kf[2:] + [other[-1]], "every keyframe, then only the newest frame"
+    assert st.pending == 1  # `second` is still unlabelled
+
+
+def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbone, frames):
+    st = _stage(cfg, mature_iterations=20, render_scale=0.5)
+    jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+    job = jobs[-1]
+    fresh = st.render_view(job)
+    bb = resize_to(job.embedding.embedding, 36, 48)
+    assert fresh.field_share == 0.0 and np.array_equal(fresh.embedding, bb)
+    assert np.allclose(fresh.entropy, uncertainty.entropy(bb), atol=1e-6)
+    st.mapper.step(40)
+    view = st.render_view(job)
+    assert view.embedding.shape == (36, 48, 9) and view.entropy.shape == (36, 48)
+    assert view.field_share > 0.5, view.field_share
+    assert not np.allclose(view.embedding, bb)
+    # The field has learnt the backbone's classes on the keyframes it trained on.
+    agree = (view.embedding.argmax(-1) == bb.argmax(-1)).mean()
+    assert agree > 0.6, agree
+
+
+def test_a_stopped_training_thread_stops_the_views(cfg, backbone, frames):
+    st = MapperStage(cfg.mapper_node, mapper_factory(cfg), online=True)
+    job = st.admit(frames[0], _record(backbone, frames[0]))
+    assert job is not None and st.mapper.running
+    st.mapper.stop()                               # as if the training thread had died
+    assert not st.check_training() and st.health.failed
+    assert st.admit(frames[5], _record(backbone, frames[5])) is None
+    with pytest.raises(RuntimeError, match="training thread"):
+        st.render_view(job)
+    assert st.health.snapshot()["level"] == H.ERROR
+
+
+def test_mapper_stage_pairs_messages_and_reports_bad_frames(cfg, backbone, frames):
+    st = _stage(cfg)
+    f = frames[0]
+    rec = _record(backbone, f)
+    assert st.offer("embedding", f.stamp_ns, rec) == []
+    st.offer("color", f.stamp_ns, f.rgb)
+    st.offer("depth", f.stamp_ns, f.depth)
+    assert st.offer("pose", f.stamp_ns + 3 * MS, f.pose) == []     # no camera info yet
+    assert st.health.problems["no_camera_info"] == 1
+    g = frames[3]
+    st.offer_info(g.intrinsics)
+    for stream, value in (("color", g.rgb), ("depth", g.depth[:, :50]), ("pose", g.pose),
+                          ("embedding", _record(backbone, g))):
+        st.offer(stream, g.stamp_ns, value)
+    assert st.health.problems["frame_mismatch"] == 1               # depth of the wrong size
+    h = frames[6]
+    jobs = []
+    for stream, value in (("pose", h.pose), ("color", h.rgb), ("embedding",
+                                                              _record(backbone, h)),
+                          ("depth", h.depth)):
+        jobs += st.offer(stream, h.stamp_ns, value)
+    assert len(jobs) == 1 and jobs[0].keyframe and jobs[0].frame.stamp_ns == h.stamp_ns
+
+
+def test_mapper_stage_saves_atomically_and_restores(cfg, backbone, frames, tmp_path):
+    from neurncd_ros.core.field.mapper import Mapper
+
+    st = _stage(cfg)
+    path = tmp_path / "map.pt"
+    assert st.save(path) is False
+    for f in frames[:20:4]:
+        st.admit(f, _record(backbone, f))
+    st.mapper.step(3)
+    assert st.save(path) and not list(tmp_path.glob("*.tmp"))
+    back = _stage(cfg)
+    back.load(path, Mapper.load)
+    assert back.spec == backbone.spec and back.mapper.iterations == 3
+    assert len(back.mapper.buffer) == len(st.mapper.buffer)
+    (tmp_path / "map.pt.spec.json").unlink()
+    with pytest.raises(ValueError, match="spec.json is missing"):
+        _stage(cfg).load(path, Mapper.load)
+
+
+# ------------------------------------------------------------------ discovery
+
+def test_discovery_waits_for_the_spec_and_labels_at_depth_size(cfg, backbone, frames):
+    clock = Clock()
+    st = DiscoveryStage(cfg, cfg.discovery_node, clock=clock)
+    f = frames[10]
+    emb = resize_to(backbone.embed(f.rgb, f.depth), 36, 48)
+    ent = uncertainty.entropy(emb)
+    for stream, value in (("embedding", emb), ("info", f.intrinsics), ("entropy", ent),
+                          ("color", f.rgb)):
+        assert st.offer(stream, f.stamp_ns, value) is False
+    assert st.offer("depth", f.stamp_ns, f.depth) is True
+    assert st.take() is None, "no spec yet: the view waits"
+    st.set_spec(backbone.spec)
+    view = st.take()
+    rec = st.label(view)
+    assert rec.labels.shape == f.depth.shape and rec.labels.dtype == np.uint16
+    assert (rec.labels > 0).mean() > 0.9
+    assert all(v["kind"] in ("known", "novel") for v in rec.classes.values())
+    bad = ViewInput(f.stamp_ns, f.depth, f.intrinsics, emb[..., :5], ent, f.rgb)
+    with pytest.raises(ValueError, match="spec says"):
+        st.label(bad)
+    bad = ViewInput(f.stamp_ns, f.depth[:, :10], f.intrinsics, emb, ent, f.rgb)
+    with pytest.raises(ValueError, match="camera info"):
+        st.label(bad)
+
+
+def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):
+    clock = Clock()
+    node_cfg = dataclasses.replace(cfg.discovery_node, spec_wait_s=5.0)
+    st = DiscoveryStage(cfg, node_cfg, clock=clock)
+    f = frames[0]
+    emb = np.zeros((72, 96, 9), np.float32)
+    for stream, value in (("embedding", emb), ("info", f.intrinsics), ("color", f.rgb),
+                          ("entropy", emb[..., 0]), ("depth", f.depth)):
+        st.offer(stream, f.stamp_ns, value)
+    clock.t = 10.0
+    assert st.take() is None and st.pending == 0
+    assert st.health.problems["no_spec"] == 1
+
+
+# ------------------------------------------------------------------ offline engine
+
+def test_offline_engine_renders_keyframes_and_the_view_rate_in_stream_time(cfg, backbone,
+                                                                          frames):
+    c = config.load(None, {"mapper.rays_per_iteration": 256, "run.view_rate_hz": 2.0,
+                           "run.training_rate_hz": 20.0, "embedding_node.max_rate_hz": 10.0})
+    engine = OfflineEngine(c, backbone)
+    outs = list(engine.run(frames, progress=False))
+    stamps = [o.frame.stamp_ns for o in outs]
+    assert set(engine.mapping.keyframe_stamps) <= set(stamps), "every keyframe is labelled"
+    others = [o.frame.stamp_ns for o in outs if not o.view.keyframe]
+    assert others and all(b - a >= 0.49e9 for a, b in zip(others, others[1:]))
+    # The embedding stage's gate: only every third 30 Hz frame reaches the mapper.
+    assert all((s - frames[0].stamp_ns) % 100_000_000 < 2 * MS for s in stamps)
+    duration = (frames[-1].stamp_ns - frames[0].stamp_ns) * 1e-9
+    assert engine.mapper.iterations == int(20.0 * 1.9)  # the last embedded frame, 1.9 s
+    assert duration > 1.9
+    for o in outs:
+        assert o.labels.labels.shape == o.frame.depth.shape
+        assert o.backbone_ids().shape == o.frame.depth.shape
+    again = list(OfflineEngine(c, backbone).run(frames, progress=False))
+    assert all(np.array_equal(a.labels.labels, b.labels.labels) for a, b in zip(outs, again))
+
+
+def test_embedding_spec_round_trip_and_errors():
+    spec = EmbeddingSpec(tuple(classes.KNOWN_IDS), 16, "default")
+    assert EmbeddingSpec.from_json(spec.to_json()) == spec and spec.channels == 25
+    for text, match in (("{", "not JSON"), ('{"x": 1}', "channel_to_id"),
+                        ('{"channel_to_id": [1]}', "at least 2"),
+                        ('{"channel_to_id": [1, 99]}', "NYU-13")):
+        with pytest.raises(ValueError, match=match):
+            EmbeddingSpec.from_json(text)
+    with pytest.raises(ValueError, match="spec says"):
+        spec.check(np.zeros((4, 4, 9), np.float32))

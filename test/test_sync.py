@@ -1,0 +1,98 @@
+"""StampSync: pairing by stamp without message_filters, bounded whatever arrives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neurncd_ros.core import sync
+
+MS = 1_000_000
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_pairs_nearest_within_tolerance_and_supersedes_what_can_never_pair():
+    s = sync.StampSync(("depth", "color"), tolerance_ns=5 * MS, capacity=10)
+    assert s.add("depth", 100 * MS, "d100") == []
+    assert s.add("depth", 133 * MS, "d133") == []
+    # Colour 3 ms after the second depth pairs with it; the older depth can never pair now.
+    assert s.add("color", 136 * MS, "c136") == [(133 * MS, {"depth": "d133", "color": "c136"})]
+    assert s.drops["superseded"] == 1 and s.pending() == 0
+    assert s.add("color", 200 * MS, "c200") == []           # no depth yet
+    assert s.add("depth", 206 * MS, "d206") == []           # 6 ms off: no pair
+    got = s.add("depth", 204 * MS, "d204")                   # within 5 ms: pairs
+    assert got == [(204 * MS, {"depth": "d204", "color": "c200"})]
+    assert s.groups == 2
+
+
+def test_group_stamp_is_the_reference_streams():
+    s = sync.StampSync(("embedding", "color", "pose"), tolerance_ns=20 * MS)
+    s.add("color", 1000 * MS, "c")
+    s.add("pose", 1010 * MS, "p")
+    assert s.add("embedding", 1000 * MS, "e") == [(1000 * MS, {"embedding": "e", "color": "c",
+                                                               "pose": "p"})]
+
+
+def test_duplicates_and_out_of_order_stamps_are_dropped_by_reason():
+    s = sync.StampSync(("depth", "color"), tolerance_ns=MS, reset_after=3)
+    s.add("depth", 100 * MS, "a")
+    assert s.add("depth", 100 * MS, "again") == []
+    assert s.drops["duplicate"] == 1
+    assert s.add("color", 100 * MS, "c")[0][1]["depth"] == "a"
+    assert s.add("depth", 50 * MS, "late") == []            # older than a paired frame
+    assert s.drops["out_of_order"] == 1
+    s.add("depth", 133 * MS, "b")
+    assert s.add("color", 133 * MS, "c2")[0][0] == 133 * MS  # later frames still pair
+
+
+def test_a_timeline_that_keeps_going_back_restarts_the_pairing():
+    """A bag replayed in a loop starts its stamps again: after reset_after such messages
+    the pairing follows the new timeline instead of dropping everything forever."""
+    s = sync.StampSync(("depth", "color"), tolerance_ns=MS, reset_after=4)
+    for k in range(10):
+        s.add("depth", (1000 + k) * MS, k)
+        s.add("color", (1000 + k) * MS, k)
+    assert s.groups == 10
+    groups = []
+    for k in range(10):
+        groups += s.add("depth", (10 + k) * MS, k)
+        groups += s.add("color", (10 + k) * MS, k)
+    assert s.resets == 1 and s.drops["out_of_order"] == 3
+    assert len(groups) >= 8 and groups[-1][0] == 19 * MS
+
+
+def test_unmatched_messages_expire_and_memory_is_bounded():
+    clock = Clock()
+    s = sync.StampSync(("depth", "embedding", "color"), tolerance_ns=MS, horizon_s=1.0,
+                       capacity=4, clock=clock)
+    for i in range(50):
+        clock.t = i * 0.033
+        s.add("depth", i * 33 * MS, i)
+        s.add("embedding", i * 33 * MS, i)
+    assert s.pending("depth") <= 4 and s.pending("embedding") <= 4
+    assert s.drops["overflow"] == 2 * (50 - 4)
+    assert s.starved() == ("color",)
+    clock.t = 100.0                                          # everything waited too long
+    s.add("color", 49 * 33 * MS, "c")
+    assert s.drops["expired"] == 8 and s.pending() == 1
+
+
+def test_unknown_stream_is_a_clear_error():
+    s = sync.StampSync(("depth",), tolerance_ns=MS)
+    with pytest.raises(KeyError, match="unknown stream"):
+        s.add("colour", 0, None)
+    with pytest.raises(ValueError, match="distinct"):
+        sync.StampSync(("a", "a"), tolerance_ns=0)
+
+
+def test_nearest_and_pose_interpolation():
+    times = np.array([100, 200], np.int64)
+    assert sync.nearest(times, 160) == (1, 40)
+    assert sync.nearest(np.array([], np.int64), 5)[0] == -1
