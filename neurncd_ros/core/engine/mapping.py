@@ -88,6 +88,9 @@ class MapperNodeConfig:
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
                                             "there agrees within this plus 3 % of the depth",
                                             lo=0.001, hi=1.0, unit="m")
+    min_valid_depth: float = param(0.05, "frames with a smaller share of pixels with depth "
+                                   "(0, NaN and inf are no measurement) are skipped: they "
+                                   "cannot place anything in the map", lo=0.0, hi=1.0)
     max_queued_keyframes: int = param(64, "keyframe views waiting to be rendered at most "
                                       "(beyond, the oldest is dropped with a warning)",
                                       lo=1, hi=10000)
@@ -274,6 +277,11 @@ class MapperStage:
         """Offer a complete frame to the field and queue it for rendering; the job, or
         None if the frame was refused (the reason is reported)."""
         if not self.check_training():
+            return None
+        valid = float(np.mean(frame.depth > 0))
+        if valid < self.cfg.min_valid_depth:
+            self.health.problem("no_depth", f"frame {frame.stamp_ns} skipped: only "
+                                f"{100 * valid:.1f} % of its pixels have a depth measurement")
             return None
         try:
             mapper = self._ensure_mapper(record.spec)
