@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "it; writes overlays and metrics")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--seed", type=int, default=1001)
-    p.add_argument("--frames", type=int, default=90)
+    p.add_argument("--frames", type=int, default=300)
     _add_config_args(p)
     p.set_defaults(func=cmd_demo)
 

@@ -1,0 +1,309 @@
+"""The live graph end to end over DDS, as a user runs it, then the same bag offline.
+
+A 300-frame 30 Hz synthetic bag of a held-out seed (seeds.TEST, 320x240,
+realistic depth) is replayed in real time by ``bringup --bag`` into the
+embedding, mapper and discovery nodes, each in its own process, with a
+separate recorder process subscribed to the replayed depth and to
+/neurncd/labels. Latency is the wall time from the depth frame's arrival at
+the recorder (on one machine over shared memory: its publication, to within a
+millisecond) to the arrival of its label. Then the same bag goes through
+``neurncd run`` (the offline engine) and both are scored against the bag's
+ground truth.
+
+Figures (bench/results/graph.json; shares are fractions, mIoU percent):
+``label_rate_hz`` (labels per second between the first label and the end of
+the bag), ``latency_median_s``, ``latency_p95_s``, ``keyframes_labelled_share``
+(keyframes whose label arrived by the end of the bag + 10 s),
+``frames_labelled_share``, ``peak_rss_gb_all_nodes`` (largest sum of the nodes'
+resident memory, sampled every 0.25 s), ``cpu_share_per_node`` (CPU seconds /
+wall seconds), ``mapper_iterations_per_s``, ``shutdown_s`` per node (SIGINT to
+exit), ``online_miou_*`` and ``offline_miou_*``, and ``machine_probe_ms`` (the
+default backbone on one 320x240 frame, 1 thread, median) to compare machines.
+
+    .venv/bin/python bench/graph.py            # seed 2000, 300 frames
+    .venv/bin/python bench/graph.py --frames 150 --seed 2001
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from _common import commit  # noqa: E402  (bench/ is on sys.path)
+
+RESULTS = REPO / "bench" / "results"
+DOMAIN = 88
+
+RECORDER = textwrap.dedent("""
+    import json, sys, time
+    import numpy as np
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import Image
+    from neurncd_ros.core import msgconv
+    from neurncd_ros.nodes.common import Shutdown, output_qos, sensor_qos
+    out = sys.argv[1]
+    shutdown = Shutdown().install()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("graph_recorder")
+    depth, labels, keyframes, images = {}, {}, [], {}
+    def stamp(m):
+        return msgconv.stamp_to_ns(m.header.stamp)
+    def on_depth(m):
+        depth.setdefault(stamp(m), time.monotonic())
+    def on_label(m):
+        s = stamp(m)
+        if s not in labels:
+            labels[s] = time.monotonic()
+            images[s] = msgconv.image_to_array(m, "/neurncd/labels")
+    node.create_subscription(Image, "/camera/depth/image_raw", on_depth, sensor_qos(100))
+    node.create_subscription(Image, "/neurncd/labels", on_label, output_qos(100))
+    node.create_subscription(PoseStamped, "/neurncd/keyframes",
+                             lambda m: keyframes.append(stamp(m)), output_qos(100))
+    open(out + ".ready", "w").close()
+    while not shutdown.requested.is_set():
+        rclpy.spin_once(node, timeout_sec=0.05)
+    json.dump({"depth": depth, "labels": labels, "keyframes": keyframes}, open(out, "w"))
+    np.savez_compressed(out + ".npz", **{str(k): v for k, v in images.items()})
+""")
+
+
+def make_bag(seed: int, frames: int) -> Path:
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    path = Path(os.environ.get("NEURNCD_GRAPH_CACHE", "/tmp/neurncd_graph")) / \
+        f"graph_s{seed}_n{frames}.mcap"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        from tqdm import tqdm
+        write_bag(path, tqdm(synth.generate(seed, frames, synth.SynthConfig()), total=frames,
+                             desc=f"synth seed {seed}", unit="frame"))
+    return path
+
+
+def ros_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(DOMAIN),
+               PYTHONUNBUFFERED="1")
+    profile = str(REPO / "config" / "fastdds_shm.xml")
+    env["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTDDS_DEFAULT_PROFILES_FILE"] = profile
+    return env
+
+
+def children(pid: int) -> dict[str, int]:
+    """Node name -> pid of the node processes started by bringup ``pid``."""
+    out = {}
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            stat = (proc / "stat").read_text()
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        if ppid == pid:
+            for part in cmd:
+                if part.startswith(b"neurncd_ros.nodes."):
+                    out[part.decode().rsplit(".", 1)[1]] = int(proc.name)
+    return out
+
+
+def rss_and_cpu(pid: int) -> tuple[float, float] | None:
+    """(resident GB, CPU seconds) of a process, None once it is gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    rss = [ln.split()[1] for ln in status.splitlines() if ln.startswith("VmRSS")]
+    if not rss:  # a zombie: it has exited
+        return None
+    rss_kb = int(rss[0])
+    tick = os.sysconf("SC_CLK_TCK")
+    return rss_kb / 2 ** 20, (int(stat[11]) + int(stat[12])) / tick
+
+
+def machine_probe_ms() -> float:
+    import torch
+
+    from neurncd_ros import synth
+    from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
+
+    torch.set_num_threads(1)
+    bb = load_backbone(BackboneConfig(num_threads=1))
+    f = next(iter(synth.generate(2000, 1, synth.SynthConfig())))
+    for _ in range(3):
+        bb.predict(f.rgb, f.depth)
+    ts = []
+    for _ in range(20):
+        t = time.perf_counter()
+        bb.predict(f.rgb, f.depth)
+        ts.append(time.perf_counter() - t)
+    return 1000 * statistics.median(ts)
+
+
+def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
+    """Recorder + bringup; returns the recording and process figures."""
+    env = ros_env()
+    rec_out = work / "recording.json"
+    for p in (rec_out, Path(str(rec_out) + ".ready")):
+        p.unlink(missing_ok=True)
+    recorder = subprocess.Popen([sys.executable, "-c", RECORDER, str(rec_out)], env=env,
+                                stdout=open(work / "recorder.log", "w"),
+                                stderr=subprocess.STDOUT, cwd=REPO)
+    while not Path(str(rec_out) + ".ready").exists():
+        if recorder.poll() is not None:
+            raise SystemExit("recorder died: " + (work / "recorder.log").read_text())
+        time.sleep(0.1)
+    log = open(work / "bringup.log", "w")
+    t0 = time.monotonic()
+    bringup = subprocess.Popen([sys.executable, "-m", "neurncd_ros.nodes.bringup", "--bag",
+                                str(bag), "--ros-args", *extra], env=env, stdout=log,
+                               stderr=subprocess.STDOUT, cwd=REPO)
+    pids: dict[str, int] = {}
+    peak, cpu, first_seen, last_seen = 0.0, {}, {}, {}
+    shutdown_s: dict[str, float] = {}
+    stop_sent = None
+    while bringup.poll() is None:
+        pids.update(children(bringup.pid))
+        total = 0.0
+        for name, pid in pids.items():
+            r = rss_and_cpu(pid)
+            now = time.monotonic()
+            if r is None:
+                if name not in shutdown_s and stop_sent is not None:
+                    shutdown_s[name] = now - stop_sent
+                continue
+            total += r[0]
+            cpu[name] = r[1]
+            first_seen.setdefault(name, now)
+            last_seen[name] = now
+        peak = max(peak, total)
+        if stop_sent is None and "stopping" in (work / "bringup.log").read_text():
+            stop_sent = time.monotonic()
+        time.sleep(0.25)
+    wall = time.monotonic() - t0
+    recorder.send_signal(signal.SIGINT)
+    recorder.wait(timeout=60)
+    rec = json.loads(rec_out.read_text())
+    with np.load(str(rec_out) + ".npz") as z:
+        images = {int(k): z[k] for k in z.files}
+    text = (work / "bringup.log").read_text()
+    iterations = 0
+    for line in text.splitlines():
+        if "[mapper]" in line and "iterations" in line and "frames paired" in line:
+            iterations = int(line.split("iterations ")[1].split(",")[0])
+    return {"rec": rec, "images": images, "peak_rss_gb": peak, "wall_s": wall,
+            "bringup_code": bringup.returncode, "log": text,
+            "cpu_share": {n: round(cpu[n] / max(last_seen[n] - first_seen[n], 1e-3), 3)
+                          for n in cpu},
+            "shutdown_s": {n: round(v, 2) for n, v in shutdown_s.items()},
+            "mapper_iterations": iterations}
+
+
+def score(frames: dict, labels: dict) -> dict:
+    from neurncd_ros.core.discovery.metrics import Evaluator
+
+    ev = Evaluator()
+    for stamp, lab in labels.items():
+        if stamp in frames:
+            ev.update(lab, frames[stamp].semantic)
+    r = ev.result()
+    return {k: round(r[k], 2) for k in ("miou_known", "miou_novel", "miou_all", "total_acc")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seed", type=int, default=None, help="default: the first test seed")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY:=VALUE",
+                    help="ROS parameter override passed to every node (-p)")
+    ap.add_argument("--no-offline", action="store_true", help="skip the neurncd run part")
+    args = ap.parse_args()
+    from neurncd_ros import config
+    from neurncd_ros.core.data.bag import FrameReader
+    from neurncd_ros.synth import seeds
+
+    seed = seeds.TEST[0] if args.seed is None else args.seed
+    bag = make_bag(seed, args.frames)
+    work = Path("/tmp/neurncd_graph") / f"run_s{seed}"
+    work.mkdir(parents=True, exist_ok=True)
+    probe = machine_probe_ms()
+    print(f"machine probe: default backbone {probe:.1f} ms per 320x240 frame (1 thread)")
+    live = run_live(bag, work, sum((["-p", s] for s in args.set), []))
+    if live["bringup_code"] != 0:
+        raise SystemExit(f"bringup failed ({live['bringup_code']}):\n{live['log'][-3000:]}")
+    rec = live["rec"]
+    depth = {int(k): v for k, v in rec["depth"].items()}
+    labels = {int(k): v for k, v in rec["labels"].items()}
+    keyframes = set(rec["keyframes"])
+    bag_end = max(depth.values())
+    lat = [labels[s] - depth[s] for s in labels if s in depth]
+    t_lab = sorted(t for t in labels.values() if t <= bag_end)
+    rate = (len(t_lab) - 1) / (t_lab[-1] - t_lab[0]) if len(t_lab) > 1 else 0.0
+    kf_in_time = [s for s in keyframes if s in labels and labels[s] <= bag_end + 10.0]
+    frames = {f.stamp_ns: f for f in FrameReader(bag)}
+    res = {
+        "seed": seed, "frames": args.frames, "fps": 30, "size": "320x240",
+        "machine_probe_ms": round(probe, 1),
+        "label_rate_hz": round(rate, 2),
+        "latency_median_s": round(float(np.median(lat)), 3) if lat else None,
+        "latency_p95_s": round(float(np.percentile(lat, 95)), 3) if lat else None,
+        "labels": len(labels), "keyframes": len(keyframes),
+        "keyframes_labelled_share": round(len(kf_in_time) / max(len(keyframes), 1), 3),
+        "frames_labelled_share": round(len(labels) / len(frames), 3),
+        "peak_rss_gb_all_nodes": round(live["peak_rss_gb"], 3),
+        "cpu_share_per_node": live["cpu_share"],
+        "shutdown_s": live["shutdown_s"],
+        "mapper_iterations": live["mapper_iterations"],
+        "mapper_iterations_per_s": round(live["mapper_iterations"] / max(
+            (args.frames / 30.0), 1e-3), 2),
+        "live_wall_s": round(live["wall_s"], 1),
+    }
+    online = score(frames, live["images"])
+    res.update({f"online_{k}": v for k, v in online.items()})
+    if not args.no_offline:
+        from neurncd_ros.core.engine.offline import OfflineEngine
+
+        import torch
+        torch.set_num_threads(1)
+        t = time.perf_counter()
+        engine = OfflineEngine(config.load())
+        off = {o.frame.stamp_ns: o.labels.labels
+               for o in engine.run(frames.values(), total=len(frames))}
+        res["offline_seconds"] = round(time.perf_counter() - t, 1)
+        res["offline_labels"] = len(off)
+        res.update({f"offline_{k}": v for k, v in score(frames, off).items()})
+    res["cores"] = os.cpu_count()
+    res["commit"] = commit()
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "graph.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, 320x240 "
+          f"(machine probe {res['machine_probe_ms']} ms):")
+    for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "keyframes_labelled_share",
+              "frames_labelled_share", "peak_rss_gb_all_nodes", "cpu_share_per_node",
+              "mapper_iterations_per_s", "shutdown_s", "online_miou_all", "online_miou_known",
+              "online_miou_novel", "offline_miou_all", "offline_miou_known",
+              "offline_miou_novel"):
+        print(f"  {k:28s} {res.get(k)}")
+    print(f"wrote {RESULTS / 'graph.json'}")
+
+
+if __name__ == "__main__":
+    main()
