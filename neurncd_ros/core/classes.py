@@ -105,18 +105,3 @@ def class_name(label_id: int) -> str:
     if label_id >= NOVEL_ID_START:
         return f"novel_{label_id - NOVEL_ID_START}"
     raise ValueError(f"label id {label_id} is neither NYU-13 (1..13) nor novel (>= 100)")
-
-
-def channel_to_id(channels: int) -> np.ndarray:
-    """NYU-13 id predicted by each embedding channel, from the backbone's channel count.
-
-    9 channels: the default model (the known classes in NYU-13 order); 40:
-    ESANet NYUv2 (NYU-40 ids 1..40); 37: ESANet SUN RGB-D (its 37 classes are
-    the first 37 NYU-40 classes).
-    """
-    if channels == NUM_KNOWN:
-        return CHANNEL_TO_ID.copy()
-    if channels in (37, 40):
-        return NYU40_TO_NYU13[1: channels + 1].copy()
-    raise ValueError(f"cannot map {channels} embedding channels to NYU-13 classes: "
-                     f"expected {NUM_KNOWN} (default backbone), 37 or 40 (ESANet)")

@@ -195,14 +195,11 @@ class StampSync:
             ref_stamp, _, ref_value = self._pending[ref_name][i]
             picked = {}
             for s in self.streams[1:]:
-                best = None
-                for j, (t, _, _) in enumerate(self._pending[s]):
-                    d = abs(t - ref_stamp)
-                    if d <= self.tolerance_ns and (best is None or d < best[0]):
-                        best = (d, j)
-                if best is None:
+                q = self._pending[s]
+                j, d = nearest(np.fromiter((e[0] for e in q), np.int64, len(q)), ref_stamp)
+                if j < 0 or d > self.tolerance_ns:
                     break
-                picked[s] = best[1]
+                picked[s] = j
             else:
                 group = {ref_name: ref_value}
                 # The group and everything older in each stream can never pair again.
