@@ -74,7 +74,8 @@ CACHE = Path(os.environ.get("NEURNCD_NCD_CACHE", "/tmp/neurncd_ncd_cache"))
 
 def _key(cfg: config.Config, seed: int, frames: int) -> str:
     h = hashlib.sha1()
-    h.update(json.dumps({"mapper": to_dict(cfg.mapper), "run": to_dict(cfg.run),
+    h.update(json.dumps({"mapper": cfg.to_nested()["mapper"], "run": to_dict(cfg.run),
+                         "keyframes": to_dict(cfg.keyframes),
                          "synth": to_dict(cfg.synth), "seed": seed, "frames": frames},
                         sort_keys=True, default=str).encode())
     h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
@@ -92,7 +93,7 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
             return {k: z[k] for k in z.files}
     torch.manual_seed(0)
     backbone = load_backbone(cfg.backbone)
-    mapper = Mapper(cfg.mapper, backbone.channels)
+    mapper = Mapper.from_config(cfg, backbone.channels)
     rows: dict[str, list] = {k: [] for k in ("rgb", "depth", "K", "embedding", "entropy",
                                              "logits", "semantic", "stamp")}
     stream = synth.generate(seed, frames, cfg.synth)

@@ -54,11 +54,11 @@ def test_stream_renderings_labels_every_nth_frame_after_its_training():
 
     cfg = config.load(None, {"run.warmup_iterations": 5, "run.train_iterations_per_frame": 2,
                              "run.label_every": 3, "mapper.min_iterations_before_publish": 4,
-                             "mapper.rays_per_iteration": 256})
+                             "mapper.fast.rays_per_iteration": 256})
     frames = list(synth.generate(1003, 8, build(synth.SynthConfig, {"width": 64,
                                                                    "height": 48})))
     backbone = load_backbone(cfg.backbone)
-    mapper = Mapper(cfg.mapper, backbone.channels)
+    mapper = Mapper.from_config(cfg, backbone.channels)
     times = pipeline.StreamTimes()
     seen = []
     for f, ids, r in pipeline.stream_renderings(frames, cfg, backbone, mapper,

@@ -123,7 +123,7 @@ def run_frames(frames: Iterable[Frame], cfg: Config, out_dir: str | Path,
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     backbone = load_backbone(cfg.backbone)
-    mapper = Mapper(cfg.mapper, backbone.channels)
+    mapper = Mapper.from_config(cfg, backbone.channels)
     discoverer = Discoverer(cfg.discovery, backbone.channel_to_id, mcl_cfg=cfg.mcl,
                             seg_cfg=cfg.segmentation, mod_cfg=cfg.modulation)
     ev_ncd, ev_backbone = Evaluator(), Evaluator()

@@ -10,6 +10,8 @@ from __future__ import annotations
 import threading
 import time
 
+import torch
+
 from ..core import msgconv
 from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
 from .common import (PairedFrames, StampMatcher, declare_config, header_ns, image_msg,
@@ -29,6 +31,8 @@ def make_node():
             super().__init__("embedding",
                              automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
+            if self.cfg.backbone.num_threads > 0:  # this process is the backbone's
+                torch.set_num_threads(self.cfg.backbone.num_threads)
             node_cfg, topics = self.cfg.embedding_node, self.cfg.topics
             self.topics = topics
             self.throttle = node_cfg.log_throttle_s

@@ -11,6 +11,8 @@ from __future__ import annotations
 import os
 import threading
 
+import torch
+
 from ..core import msgconv
 from ..core.field.mapper import Mapper  # before rclpy: scipy/torch load first
 from ..core.frame import Frame
@@ -34,6 +36,8 @@ def make_node():
         def __init__(self) -> None:
             super().__init__("mapper", automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
+            if self.cfg.mapper.num_threads > 0:  # this process is the mapper's
+                torch.set_num_threads(self.cfg.mapper.num_threads)
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
             self.throttle = self.node_cfg.log_throttle_s
             self.mapper = None
@@ -92,7 +96,7 @@ def make_node():
             with self._lock:
                 if self.mapper is None:
                     self.channels = emb.shape[2]
-                    self.mapper = Mapper(self.cfg.mapper, self.channels)
+                    self.mapper = Mapper.from_config(self.cfg, self.channels)
                     self.mapper.start()
                     self.get_logger().info(f"mapper started with {self.channels} channels, "
                                            f"backend {self.cfg.mapper.backend}")
