@@ -228,6 +228,41 @@ def score(frames: dict, labels: dict) -> dict:
     return {k: round(r[k], 2) for k in ("miou_known", "miou_novel", "miou_all", "total_acc")}
 
 
+def picture(depth: dict, labels: dict, keyframes: set, res: dict, path: Path) -> None:
+    """Each labelled frame as a line from its arrival to its label's (keyframes in red),
+    and the latency distribution."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t0 = min(depth.values())
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
+    a.plot([t - t0 for t in depth.values()], [0] * len(depth), "|", color="0.6",
+           label="frame arrives")
+    for s, t in labels.items():
+        if s in depth:
+            kf = s in keyframes
+            a.plot([depth[s] - t0, t - t0], [0, 1], color="tab:red" if kf else "tab:blue",
+                   lw=0.8, alpha=0.8)
+    a.plot([], [], color="tab:red", label="keyframe labelled")
+    a.plot([], [], color="tab:blue", label="frame labelled")
+    a.set_yticks([0, 1], ["frame", "label"])
+    a.set_xlabel("wall time (s)")
+    a.set_title(f"live graph: {res['label_rate_hz']} labels/s, "
+                f"{100 * res['frames_labelled_share']:.0f} % of frames, "
+                f"{100 * res['keyframes_labelled_share']:.0f} % of keyframes")
+    a.legend(loc="upper left", fontsize=8)
+    lat = [labels[s] - depth[s] for s in labels if s in depth]
+    b.hist(lat, bins=20, color="tab:blue")
+    b.axvline(res["latency_median_s"], color="k", ls="--", label="median")
+    b.axvline(res["latency_p95_s"], color="tab:red", ls=":", label="p95")
+    b.set_xlabel("latency (s)")
+    b.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=None, help="default: the first test seed")
@@ -294,6 +329,7 @@ def main() -> None:
     res["commit"] = commit()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "graph.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    picture(depth, labels, keyframes, res, RESULTS / "graph.png")
     print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, 320x240 "
           f"(machine probe {res['machine_probe_ms']} ms):")
     for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "keyframes_labelled_share",

@@ -78,8 +78,9 @@ CACHE = Path(os.environ.get("NEURNCD_NCD_CACHE", "/tmp/neurncd_ncd_cache"))
 def _key(cfg: config.Config, seed: int, frames: int) -> str:
     h = hashlib.sha1()
     h.update(json.dumps({**{k: to_dict(getattr(cfg, k)) for k in (
-        "mapper", "run", "synth", "embedding_node", "mapper_node")},
-        "seed": seed, "frames": frames}, sort_keys=True, default=str).encode())
+        "run", "synth", "keyframes", "embedding_node", "mapper_node")},
+        "mapper": cfg.to_nested()["mapper"], "seed": seed, "frames": frames},
+        sort_keys=True, default=str).encode())
     h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
     h.update(Path(cfg.backbone.checkpoint or DEFAULT_WEIGHTS).read_bytes())
     h.update(bb_train.generator_hash().encode())

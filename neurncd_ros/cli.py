@@ -67,7 +67,7 @@ def cmd_params(args: argparse.Namespace) -> int:
 
 def cmd_check_config(args: argparse.Namespace) -> int:
     cfg = config_mod.load(args.file)
-    n = sum(len(v) for v in cfg.to_nested().values())
+    n = len(cfg.to_flat())
     print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections)")
     return 0
 
@@ -136,10 +136,19 @@ def cmd_train_backbone(args: argparse.Namespace) -> int:
     return int(train.main(args) or 0)
 
 
+def _set_threads(cfg: config_mod.Config) -> None:
+    """This process runs the backbone and the mapper in turn: the mapper's thread count."""
+    import torch
+
+    if cfg.mapper.num_threads > 0:
+        torch.set_num_threads(cfg.mapper.num_threads)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .core.engine import offline
 
     cfg = load_config(args)
+    _set_threads(cfg)
     result = offline.run_bag(args.bag, cfg, out_dir=args.out or cfg.run.out_dir)
     print(offline.summary(result))
     return 0
@@ -154,6 +163,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .core.engine import offline
 
     cfg = load_config(args)
+    _set_threads(cfg)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     bag = out / "scene.mcap"

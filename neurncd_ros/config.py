@@ -1,17 +1,24 @@
 """The one configuration schema: every parameter of every node and of `neurncd`.
 
 The schema is assembled from the parameter dataclasses the components declare
-(``core.params.param``), one section each. ``config/neurncd.yaml`` holds the
-values in ROS 2 parameter-file form::
+(``core.params.param``), one section each. A section class may declare
+subsections (``subsections()``: name -> class), e.g. one per registered field
+backend under ``mapper``. ``config/neurncd.yaml`` holds the values in ROS 2
+parameter-file form::
 
     /**:
       ros__parameters:
         backbone:
           kind: default
+        mapper:
+          backend: fast
+          fast:
+            hidden: 32
 
 so the same file is given to every node (``--ros-args --params-file``) and to
 the offline tool (``neurncd run --config``). In ROS the nested keys become
-dotted parameter names (``backbone.kind``).
+dotted parameter names (``backbone.kind``, ``mapper.fast.hidden``); a
+section's dotted name (``mapper.fast``) is what :meth:`Config.section` takes.
 """
 
 from __future__ import annotations
@@ -49,8 +56,8 @@ class ReplayConfig:
                                           "do not wait)", lo=0.0, hi=3600.0, unit="s")
 
 
-# Section name -> (module, class). Core sections are imported lazily so this
-# module stays cheap to import.
+# Top-level section name -> (module, class). Core sections are imported lazily so
+# this module stays cheap to import.
 SECTIONS: dict[str, tuple[str, str]] = {
     "topics": ("neurncd_ros.core.topics", "Topics"),
     "sync": ("neurncd_ros.core.data.bag", "SyncConfig"),
@@ -58,6 +65,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "synth": ("neurncd_ros.synth.generator", "SynthConfig"),
     "backbone": ("neurncd_ros.core.backbone.backbone", "BackboneConfig"),
     "mapper": ("neurncd_ros.core.field.mapper", "MapperConfig"),
+    "keyframes": ("neurncd_ros.core.field.keyframes", "KeyframeConfig"),
     "segmentation": ("neurncd_ros.core.discovery.geoseg", "GeoSegConfig"),
     "modulation": ("neurncd_ros.core.discovery.modulation", "ModulationConfig"),
     "mcl": ("neurncd_ros.core.discovery.mcl", "MCLConfig"),
@@ -72,19 +80,43 @@ SECTIONS: dict[str, tuple[str, str]] = {
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "neurncd.yaml"
 
 
-def section_class(name: str) -> type:
+def _top_class(name: str) -> type:
     mod, cls = SECTIONS[name]
     return getattr(importlib.import_module(mod), cls)
 
 
+def section_classes() -> dict[str, type]:
+    """Every section by dotted name (``mapper``, ``mapper.fast``, ...), each followed by
+    its subsections, in file order."""
+    out: dict[str, type] = {}
+
+    def add(name: str, cls: type) -> None:
+        out[name] = cls
+        sub = getattr(cls, "subsections", None)
+        for child, child_cls in (sub() if callable(sub) else {}).items():
+            add(f"{name}.{child}", child_cls)
+
+    for name in SECTIONS:
+        add(name, _top_class(name))
+    return out
+
+
+def section_class(name: str) -> type:
+    try:
+        return section_classes()[name]
+    except KeyError:
+        raise ConfigError(f"{name}: unknown section") from None
+
+
 def schema() -> dict[str, list[ParamSpec]]:
-    """Every parameter, by section, in declaration order."""
-    return {name: specs(section_class(name)) for name in SECTIONS}
+    """Every parameter, by dotted section name, in declaration order."""
+    return {name: specs(cls) for name, cls in section_classes().items()}
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """A validated configuration: one attribute per section."""
+    """A validated configuration: one attribute per top-level section, :meth:`section` for
+    any section by dotted name."""
 
     sections: dict[str, Any]
 
@@ -94,40 +126,102 @@ class Config:
         except KeyError:
             raise AttributeError(name) from None
 
+    def section(self, name: str) -> Any:
+        """The section object of a dotted name, e.g. ``cfg.section("mapper.fast")``."""
+        try:
+            return self.sections[name]
+        except KeyError:
+            raise KeyError(f"{name}: unknown section; known: "
+                           + ", ".join(self.sections)) from None
+
     def to_nested(self) -> dict[str, dict[str, Any]]:
-        return {name: to_dict(obj) for name, obj in self.sections.items()}
+        """``{section: {key: value, subsection: {...}}}``, as in the parameter file."""
+        out: dict[str, Any] = {}
+        for name, obj in self.sections.items():
+            *parents, last = name.split(".")
+            node = out
+            for p in parents:
+                node = node[p]
+            node[last] = to_dict(obj)
+        return out
 
     def to_flat(self) -> dict[str, Any]:
         """Dotted ROS parameter names -> values."""
-        return {f"{s}.{k}": v for s, d in self.to_nested().items() for k, v in d.items()}
+        return {f"{s}.{k}": v for s, obj in self.sections.items()
+                for k, v in to_dict(obj).items()}
+
+
+def _by_section(values: Any) -> dict[str, dict[str, Any]]:
+    """Nested ``{section: {key: value, subsection: {...}}}`` -> values per dotted section."""
+    if not isinstance(values, dict):
+        raise ConfigError(f"parameters must be a mapping of sections, got "
+                          f"{type(values).__name__}")
+    known = section_classes()
+    out: dict[str, dict[str, Any]] = {}
+
+    def walk(name: str, mapping: Any) -> None:
+        if not isinstance(mapping, dict):
+            raise ConfigError(f"{name}: section must be a mapping of parameters, got "
+                              f"{mapping!r}")
+        children = [n.rsplit(".", 1)[1] for n in known if n.rsplit(".", 1)[0] == name
+                    and n.count(".") == name.count(".") + 1]
+        own = {}
+        for key, value in mapping.items():
+            if key in children:
+                walk(f"{name}.{key}", value)
+            elif isinstance(value, dict):
+                raise ConfigError(f"{name}.{key}: unknown section; known: "
+                                  + (", ".join(children) or "none"))
+            else:
+                own[key] = value
+        out[name] = own
+
+    for name, sec in values.items():
+        if name not in SECTIONS:
+            raise ConfigError(f"{name}: unknown section; known: " + ", ".join(SECTIONS))
+        walk(name, sec)
+    return out
+
+
+def _set_dotted(by_section: dict[str, dict[str, Any]], key: str, value: Any) -> None:
+    """Put a dotted parameter (``mapper.fast.hidden``) into its section's values."""
+    if "." not in key:
+        raise ConfigError(f"{key}: unknown parameter; parameters are named "
+                          "<section>.<name>, sections: " + ", ".join(SECTIONS))
+    known = section_classes()
+    sec = max((n for n in known if key.startswith(n + ".")), key=len, default=None)
+    if sec is None:
+        top = key.split(".", 1)[0]
+        raise ConfigError(f"{top}: unknown section; known: " + ", ".join(SECTIONS))
+    by_section.setdefault(sec, {})[key[len(sec) + 1:]] = value
+
+
+def _build(by_section: dict[str, dict[str, Any]]) -> Config:
+    return Config({name: build(cls, by_section.get(name), prefix=f"{name}.")
+                   for name, cls in section_classes().items()})
 
 
 def from_nested(values: dict[str, Any] | None) -> Config:
     """Validate nested ``{section: {key: value}}``; unknown sections or keys fail by name."""
-    values = values or {}
-    if not isinstance(values, dict):
-        raise ConfigError(f"parameters must be a mapping of sections, got "
-                          f"{type(values).__name__}")
-    for name, sec in values.items():
-        if name not in SECTIONS:
-            raise ConfigError(f"{name}: unknown section; known: " + ", ".join(SECTIONS))
-        if not isinstance(sec, dict):
-            raise ConfigError(f"{name}: section must be a mapping of parameters, got "
-                              f"{sec!r}")
-    return Config({name: build(section_class(name), values.get(name), prefix=f"{name}.")
-                   for name in SECTIONS})
+    return _build(_by_section(values or {}))
 
 
 def from_flat(values: dict[str, Any]) -> Config:
-    """Validate dotted names (``section.key``), as ROS parameters arrive."""
-    nested: dict[str, dict[str, Any]] = {}
+    """Validate dotted names (``section.key``, ``section.sub.key``), as ROS parameters
+    arrive."""
+    by_section: dict[str, dict[str, Any]] = {}
     for key, value in values.items():
-        if "." not in key:
-            raise ConfigError(f"{key}: unknown parameter; parameters are named "
-                              "<section>.<name>, sections: " + ", ".join(SECTIONS))
-        sec, name = key.split(".", 1)
-        nested.setdefault(sec, {})[name] = value
-    return from_nested(nested)
+        _set_dotted(by_section, key, value)
+    return _build(by_section)
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """``extra`` over ``base``, mappings merged key by key at every depth."""
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) \
+            else v
+    return out
 
 
 def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
@@ -148,11 +242,7 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
         params = body["ros__parameters"] or {}
         if not isinstance(params, dict):
             raise ConfigError(f"{source}: {node_name}.ros__parameters must be a mapping")
-        for sec, vals in params.items():
-            if isinstance(vals, dict) and isinstance(merged.get(sec), dict):
-                merged[sec] = {**merged[sec], **vals}
-            else:
-                merged[sec] = vals
+        merged = _merge(merged, params)
     return merged
 
 
@@ -165,15 +255,14 @@ def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None
     if not path.is_file():
         raise ConfigError(f"config file {path} does not exist")
     nested = parameters_from_yaml(path.read_text(), str(path))
-    for key, value in (overrides or {}).items():
+    for key in overrides or {}:
         if "." not in key:
             raise ConfigError(f"{key}: override must be <section>.<name>")
-        sec, name = key.split(".", 1)
-        if sec in nested and not isinstance(nested[sec], dict):
-            raise ConfigError(f"{sec}: section must be a mapping")
-        nested.setdefault(sec, {})[name] = value
     try:
-        return from_nested(nested)
+        by_section = _by_section(nested)
+        for key, value in (overrides or {}).items():
+            _set_dotted(by_section, key, value)
+        return _build(by_section)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
 
@@ -187,21 +276,23 @@ def to_yaml(cfg: Config, with_docs: bool = True) -> str:
     """The configuration as a ROS 2 parameter file, each value with its doc."""
     lines = ["/**:", "  ros__parameters:"]
     sch = schema()
-    for sec, values in cfg.to_nested().items():
+    for sec, obj in cfg.sections.items():
+        values = to_dict(obj)
         cls = section_class(sec)
+        pad = "  " * (sec.count(".") + 2)
         doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
         if with_docs and doc:
-            lines.append(f"    # {doc}")
-        lines.append(f"    {sec}:")
+            lines.append(f"{pad}# {doc}")
+        lines.append(f"{pad}{sec.rsplit('.', 1)[-1]}:")
         for spec in sch[sec]:
             if with_docs:
-                lines.append(f"      # {spec.doc} ({spec.allowed()})")
+                lines.append(f"{pad}  # {spec.doc} ({spec.allowed()})")
             dumped = yaml.safe_dump({spec.name: values[spec.name]}, default_flow_style=True,
                                     width=10_000).strip()
             # ROS cannot type an empty list from a parameter file ("not set"), so an
             # empty default is written commented out: absent means the default.
             empty = isinstance(values[spec.name], list) and not values[spec.name]
-            lines.append(f"      {'# ' if empty else ''}{dumped[1:-1]}")
+            lines.append(f"{pad}  {'# ' if empty else ''}{dumped[1:-1]}")
     return "\n".join(lines) + "\n"
 
 

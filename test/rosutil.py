@@ -11,11 +11,46 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
-def ros_env(domain: int | None = None) -> dict[str, str]:
+SLOT_SIZE, SLOTS = 16, 14  # domain ids 1..224, all valid (ROS allows 0..232)
+_slot_lock = None
+
+
+def _session_slot() -> int:
+    """A block of domain ids for this test session alone: the first slot whose lock file no
+    other session holds (several checkouts may run their suites at once on one machine;
+    on a shared domain their nodes would talk to each other)."""
+    global _slot_lock
+    import fcntl
+    import tempfile
+
+    if _slot_lock is not None:
+        return _slot_lock[0]
+    folder = Path(tempfile.gettempdir()) / "neurncd-test-domains"
+    folder.mkdir(exist_ok=True)
+    for slot in range(SLOTS):
+        fh = open(folder / f"slot-{slot}.lock", "w")
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            fh.close()
+            continue
+        _slot_lock = (slot, fh)  # held until this process exits
+        return slot
+    raise RuntimeError(f"all {SLOTS} test domain slots are taken by other test sessions")
+
+
+def domain(k: int) -> int:
+    """The k-th private ROS domain id of this test session (k < 16)."""
+    if not 0 <= k < SLOT_SIZE:
+        raise ValueError(f"domain index {k} out of 0..{SLOT_SIZE - 1}")
+    return 1 + SLOT_SIZE * _session_slot() + k
+
+
+def ros_env(domain_id: int | None = None) -> dict[str, str]:
     """Environment for a DDS test: never leaves this machine, private domain id."""
     env = dict(os.environ)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env["ROS_DOMAIN_ID"] = str(domain if domain is not None else 100 + os.getpid() % 100)
+    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else domain(0))
     env.pop("ROS_STATIC_PEERS", None)
     profile = str(REPO / "config" / "fastdds_shm.xml")
     env["FASTRTPS_DEFAULT_PROFILES_FILE"] = profile
@@ -25,9 +60,9 @@ def ros_env(domain: int | None = None) -> dict[str, str]:
     return env
 
 
-def apply_ros_env(domain: int | None = None) -> None:
+def apply_ros_env(domain_id: int | None = None) -> None:
     """Set the test environment in this process (before rclpy.init)."""
-    os.environ.update(ros_env(domain))
+    os.environ.update(ros_env(domain_id))
 
 
 def _ignore_sigint() -> None:  # in the child: as `cmd &` from a script or nohup start it
@@ -45,8 +80,8 @@ def start(args: list[str], env: dict[str, str], log: Path,
                             preexec_fn=_ignore_sigint if ignore_sigint else None)
 
 
-def node_processes(domain: int) -> list[int]:
-    """Pids of neurncd node processes running on ROS domain ``domain`` (from /proc)."""
+def node_processes(domain_id: int) -> list[int]:
+    """Pids of neurncd node processes running on ROS domain ``domain_id`` (from /proc)."""
     pids = []
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
@@ -56,7 +91,7 @@ def node_processes(domain: int) -> list[int]:
             env = (proc / "environ").read_bytes()
         except OSError:
             continue
-        if b"neurncd_ros.nodes" in cmd and f"\0ROS_DOMAIN_ID={domain}\0".encode() in (
+        if b"neurncd_ros.nodes" in cmd and f"\0ROS_DOMAIN_ID={domain_id}\0".encode() in (
                 b"\0" + env + b"\0"):
             pids.append(int(proc.name))
     return pids

@@ -17,7 +17,8 @@ SHIPPED = REPO / "config" / "neurncd.yaml"
 
 def test_every_parameter_is_documented_and_typed():
     sch = config.schema()
-    assert set(sch) == set(config.SECTIONS)
+    assert set(sch) == set(config.section_classes())
+    assert {"mapper", "mapper.fast", "mapper.reference", "keyframes"} <= set(sch)
     names = set()
     for sec, specs in sch.items():
         assert specs, f"section {sec} declares no parameters"
@@ -40,7 +41,7 @@ def test_shipped_yaml_is_ros_parameter_file_and_round_trips():
     # Every parameter of the schema is written (and documented) in the shipped file.
     text = SHIPPED.read_text()
     for key in cfg.to_flat():
-        sec, name = key.split(".", 1)
+        sec, name = key.rsplit(".", 1)
         assert re.search(rf"^\s+(# )?{re.escape(name)}:", text, re.M), key
 
 
@@ -94,6 +95,59 @@ def test_overrides_and_flat_names():
         config.from_flat({"backend": "fast"})
     # Ints are accepted where floats are declared (YAML writes 1 for 1.0).
     assert config.from_flat({"replay.rate": 2}).replay.rate == 2.0
+
+
+def test_backend_and_keyframe_sections_nested_in_file_dotted_in_ros(tmp_path):
+    from neurncd_ros.core.field.backends.fast import FastConfig
+    from neurncd_ros.core.field.backends.reference import ReferenceConfig
+    from neurncd_ros.core.field.keyframes import KeyframeConfig
+
+    params = yaml.safe_load(SHIPPED.read_text())["/**"]["ros__parameters"]
+    assert params["mapper"]["backend"] == "fast"
+    assert set(params["mapper"]["fast"]) == {s.name for s in config.schema()["mapper.fast"]}
+    assert "reference" in params["mapper"] and "max_keyframes" in params["keyframes"]
+    cfg = config.default()
+    assert cfg.section("mapper.fast") == FastConfig()
+    assert cfg.section("mapper.reference") == ReferenceConfig()
+    assert cfg.section("keyframes") == cfg.keyframes == KeyframeConfig()
+    assert cfg.section("mapper") is cfg.mapper
+    with pytest.raises(KeyError, match="mapper.gpu: unknown section"):
+        cfg.section("mapper.gpu")
+    flat = cfg.to_flat()
+    assert flat["mapper.fast.hidden"] == 32 and flat["mapper.reference.lr"] == 5e-4
+    assert flat["keyframes.max_keyframes"] == 64 and "mapper.max_keyframes" not in flat
+    got = config.from_flat({"mapper.fast.hidden": 64, "mapper.reference.rays_per_iteration": 512,
+                            "keyframes.max_keyframes": 8})
+    assert got.section("mapper.fast").hidden == 64 and got.keyframes.max_keyframes == 8
+    assert got.section("mapper.reference").rays_per_iteration == 512
+    assert got.to_nested()["mapper"]["fast"]["hidden"] == 64
+    assert config.from_nested(got.to_nested()).to_flat() == got.to_flat()
+    with pytest.raises(ConfigError, match=r"mapper\.fast\.no_such: unknown parameter"):
+        config.from_flat({"mapper.fast.no_such": 1})
+    with pytest.raises(ConfigError, match=r"mapper\.gpu\.hidden: unknown parameter"):
+        config.from_flat({"mapper.gpu.hidden": 1})
+    over = config.load(SHIPPED, {"mapper.reference.lr": 1e-3, "keyframes.recent_window": 5})
+    assert over.section("mapper.reference").lr == 1e-3 and over.keyframes.recent_window == 5
+    # Several node entries merge at every depth.
+    two = tmp_path / "two.yaml"
+    two.write_text("/**:\n  ros__parameters:\n    mapper: {fast: {hidden: 16}}\n"
+                   "mapper:\n  ros__parameters:\n    mapper: {fast: {plane_channels: 4}}\n")
+    fast = config.load(two).section("mapper.fast")
+    assert (fast.hidden, fast.plane_channels) == (16, 4)
+
+
+@pytest.mark.parametrize("values, match", [
+    ({"mapper": {"fast": {"no_such": 1}}}, r"mapper\.fast\.no_such: unknown parameter; known: "),
+    ({"mapper": {"fast": {"hidden": "x"}}}, r"mapper\.fast\.hidden: 'x' has type str"),
+    ({"mapper": {"reference": {"lr": 2.0}}}, r"mapper\.reference\.lr: 2\.0 is out of range"),
+    ({"mapper": {"fast": 3}}, r"mapper\.fast: section must be a mapping"),
+    ({"mapper": {"gpu": {"x": 1}}}, r"mapper\.gpu: unknown section; known: fast, reference"),
+    ({"mapper": {"max_keyframes": 8}}, r"mapper\.max_keyframes: unknown parameter"),
+    ({"keyframes": {"max_keyframes": 1}}, r"keyframes\.max_keyframes: 1 is out of range"),
+])
+def test_bad_values_in_subsections_name_the_dotted_key(values, match):
+    with pytest.raises(ConfigError, match=match):
+        config.from_nested(values)
 
 
 def test_readme_parameter_table_matches_schema():

@@ -34,7 +34,7 @@ class Clock:
 
 @pytest.fixture(scope="module")
 def cfg():
-    return config.load(None, {"mapper.rays_per_iteration": 256})
+    return config.load(None, {"mapper.fast.rays_per_iteration": 256})
 
 
 @pytest.fixture(scope="module")
@@ -258,7 +258,7 @@ def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):
 
 def test_offline_engine_renders_keyframes_and_the_view_rate_in_stream_time(cfg, backbone,
                                                                           frames):
-    c = config.load(None, {"mapper.rays_per_iteration": 256, "run.view_rate_hz": 2.0,
+    c = config.load(None, {"mapper.fast.rays_per_iteration": 256, "run.view_rate_hz": 2.0,
                            "run.training_rate_hz": 20.0, "embedding_node.max_rate_hz": 10.0})
     engine = OfflineEngine(c, backbone)
     outs = list(engine.run(frames, progress=False))

@@ -15,6 +15,9 @@ from neurncd_ros.core.camera import camera_directions, pixel_grid
 from neurncd_ros import synth
 from neurncd_ros.core.data import formats
 from neurncd_ros.core.field import losses, renderer, samplers
+from neurncd_ros.core.field.backends.fast import FastConfig
+from neurncd_ros.core.field.backends.reference import ReferenceConfig
+from neurncd_ros.core.field.keyframes import KeyframeConfig
 from neurncd_ros.core.field.mapper import Mapper, MapperConfig
 from neurncd_ros.core.frame import Frame
 
@@ -56,17 +59,18 @@ def test_render_weights_stop_at_an_opaque_wall():
 
 def test_samplers_stay_in_range_and_follow_weights():
     near, far = torch.tensor([0.1, 1.0]), torch.tensor([5.0, 3.0])
-    t = samplers.stratified(near, far, 32, perturb=True)
+    g = torch.Generator().manual_seed(0)
+    t = samplers.stratified(near, far, 32, perturb=g)
     assert torch.all(t >= near[:, None]) and torch.all(t <= far[:, None])
     assert torch.all(t[:, 1:] >= t[:, :-1])
     w = torch.zeros(2, 32)
     w[:, 10] = 1.0
-    tf = samplers.importance(t, w, 64, perturb=True)
+    tf = samplers.importance(t, w, 64, perturb=g)
     lo, hi = (t[:, 9] + t[:, 10]) / 2, (t[:, 10] + t[:, 11]) / 2
     inside = (tf >= lo[:, None] - 1e-5) & (tf <= hi[:, None] + 1e-5)
     assert inside.float().mean() > 0.95
     depth = torch.tensor([2.0, 0.0])
-    tg = samplers.depth_guided(near, far, depth, 16, 8, 0.1, perturb=True)
+    tg = samplers.depth_guided(near, far, depth, 16, 8, 0.1, perturb=g)
     assert ((tg[0] - 2.0).abs() <= 0.1 + 1e-6).sum() >= 16  # band around the measurement
     assert torch.all(tg[1] >= 1.0) and torch.all(tg[1] <= 3.0)  # no depth: stratified
     o = torch.zeros(2, 3)
@@ -109,7 +113,7 @@ def redwood(real_data_dir):
 
 def test_fast_field_fits_real_rgbd_heldout_pixels(redwood):
     """5 real Redwood frames at 160x120; every 4th pixel (both axes) is never trained on."""
-    m = Mapper(MapperConfig(holdout_stride=4, seed=1), channels=3)
+    m = Mapper(MapperConfig(seed=1), channels=3, keyframes=KeyframeConfig(holdout_stride=4))
     for f in redwood:
         assert m.add_keyframe(f, np.zeros((60, 80, 3), np.float32), force=True)
     m.step(150)
@@ -129,8 +133,9 @@ def test_fast_field_fits_real_rgbd_heldout_pixels(redwood):
 @pytest.mark.slow
 def test_reference_field_learns_real_rgbd(redwood):
     """The paper's MLP (few rays so it stays minutes): held-out PSNR improves clearly."""
-    m = Mapper(MapperConfig(backend="reference", holdout_stride=4,
-                            reference_rays_per_iteration=256, seed=3), channels=3)
+    m = Mapper(MapperConfig(backend="reference", seed=3), channels=3,
+               keyframes=KeyframeConfig(holdout_stride=4),
+               backend_cfg=ReferenceConfig(rays_per_iteration=256))
     for f in redwood:
         m.add_keyframe(f, np.zeros((120, 160, 3), np.float32), force=True)
     o, d, rgb, _ = _heldout_rays(redwood[2], 8)
@@ -158,7 +163,8 @@ def synthetic():
 
 def _fit_synthetic(frames, steps: int, **cfg) -> Mapper:
     rng = np.random.default_rng(0)
-    m = Mapper(MapperConfig(rays_per_iteration=1024, seed=2, **cfg), classes.NUM_KNOWN)
+    m = Mapper(MapperConfig(seed=2, **cfg), classes.NUM_KNOWN,
+               backend_cfg=FastConfig(rays_per_iteration=1024))
     for i, f in enumerate(frames):
         if i % 6 != 3:
             m.add_keyframe(f, _gt_embedding(f.semantic, rng), force=True)
@@ -222,8 +228,9 @@ def test_depth_guided_render_on_heldout_views(synthetic):
     with pytest.raises(ValueError, match="values for"):
         m.render_rays(np.zeros((4, 3)), np.ones((4, 3)), np.ones(3))
     # The reference backend (faithful to the paper) ignores the depth.
-    r = Mapper(MapperConfig(backend="reference", reference_rays_per_iteration=32,
-                            coarse_samples=8, fine_samples=8), classes.NUM_KNOWN)
+    r = Mapper(MapperConfig(backend="reference"), classes.NUM_KNOWN,
+               backend_cfg=ReferenceConfig(rays_per_iteration=32, coarse_samples=8,
+                                           fine_samples=8))
     r.add_keyframe(f, _gt_embedding(f.semantic, np.random.default_rng(0)))
     a = r.render(f.pose, f.intrinsics, 6, 8)
     b = r.render(f.pose, f.intrinsics, 6, 8, depth=f.depth)
@@ -248,8 +255,9 @@ def test_save_load_renders_identically_and_resumes(synthetic, tmp_path):
 
 
 def test_background_training_while_adding_and_rendering(synthetic):
-    m = Mapper(MapperConfig(rays_per_iteration=256, min_iterations_before_publish=5,
-                            min_translation=0.05), classes.NUM_KNOWN)
+    m = Mapper(MapperConfig(min_iterations_before_publish=5), classes.NUM_KNOWN,
+               keyframes=KeyframeConfig(min_translation=0.05),
+               backend_cfg=FastConfig(rays_per_iteration=256))
     rng = np.random.default_rng(0)
     m.start()
     try:
@@ -294,9 +302,9 @@ def test_bounds_grow_and_keep_what_was_learnt(synthetic):
 
 
 def test_reference_backend_smoke(synthetic):
-    cfg = MapperConfig(backend="reference", reference_rays_per_iteration=32,
-                       coarse_samples=16, fine_samples=16)
-    m = Mapper(cfg, classes.NUM_KNOWN)
+    m = Mapper(MapperConfig(backend="reference"), classes.NUM_KNOWN,
+               backend_cfg=ReferenceConfig(rays_per_iteration=32, coarse_samples=16,
+                                           fine_samples=16))
     f = synthetic[0]
     m.add_keyframe(f, _gt_embedding(f.semantic, np.random.default_rng(0)))
     out = m.step(2)

@@ -11,6 +11,7 @@ import pytest
 from neurncd_ros.core import classes, msgconv
 from neurncd_ros.core.camera import Intrinsics
 
+import rosutil
 from rosutil import REPO, apply_ros_env, diagnostics_of, ros_env, spin_until, start, stop
 
 pytestmark = pytest.mark.ros
@@ -29,7 +30,7 @@ def small_bag(tmp_path_factory):
 @pytest.fixture
 def ros_node(request):
     """An rclpy node in this test process, on the test's private domain."""
-    domain = 150 + (hash(request.node.name) % 50)
+    domain = rosutil.domain(1)
     apply_ros_env(domain)
     import rclpy
     rclpy.init()
@@ -125,7 +126,7 @@ def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, 
     SIGTERM: it logs its summary and exits 0."""
     import signal
 
-    domain = 180 + ["embedding", "mapper", "discovery", "replay"].index(node_name)
+    domain = rosutil.domain(2 + ["embedding", "mapper", "discovery", "replay"].index(node_name))
     apply_ros_env(domain)
     import rclpy
     rclpy.init()
@@ -166,7 +167,7 @@ def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, 
 ])
 def test_bad_parameter_stops_node_with_clear_message(args, expect):
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args", *args],
-                       env=ros_env(199), capture_output=True, text=True, timeout=120, cwd=REPO)
+                       env=ros_env(rosutil.domain(6)), capture_output=True, text=True, timeout=120, cwd=REPO)
     assert r.returncode == 2, r.stdout + r.stderr
     assert expect in r.stderr
     assert "Traceback" not in r.stderr

@@ -21,11 +21,11 @@ import pytest
 
 from neurncd_ros.core import msgconv
 
+import rosutil
 from rosutil import REPO, apply_ros_env, diagnostics_of, ros_env, spin_until, start, stop
 
 pytestmark = pytest.mark.ros
 
-DOMAIN = 160
 SEC = 1_000_000_000
 
 
@@ -39,7 +39,7 @@ class Graph:
     """The three nodes in their own processes, and a test node that feeds and listens."""
 
     def __init__(self, tmp, frames) -> None:
-        apply_ros_env(DOMAIN)
+        apply_ros_env(rosutil.domain(9))
         import rclpy
         from geometry_msgs.msg import PoseStamped
         from sensor_msgs.msg import CameraInfo, Image
@@ -78,7 +78,7 @@ class Graph:
                 "-p", "embedding_node.log_throttle_s:=0.5",
                 "-p", "mapper_node.log_throttle_s:=0.5",
                 "-p", "discovery_node.log_throttle_s:=0.5"]
-        return start(args, ros_env(DOMAIN), self.logs[name])
+        return start(args, ros_env(rosutil.domain(9)), self.logs[name])
 
     def spin(self, seconds: float) -> None:
         import rclpy
@@ -277,7 +277,7 @@ def test_truncated_bag_makes_replay_exit_nonzero_naming_it(tmp_path, frames):
     data_file.write_bytes(data_file.read_bytes()[: data_file.stat().st_size // 2])
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
                         f"replay.bag:={bag}", "-p", "replay.wait_for_subscribers_s:=0.0"],
-                       env=ros_env(DOMAIN + 1), capture_output=True, text=True, timeout=120,
+                       env=ros_env(rosutil.domain(10)), capture_output=True, text=True, timeout=120,
                        cwd=REPO)
     assert r.returncode == 1, r.stdout + r.stderr
     out = r.stdout + r.stderr
@@ -292,7 +292,7 @@ def test_replay_plays_the_bag_and_exits_zero(tmp_path, frames):
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
                         f"replay.bag:={bag}", "-p", "replay.wait_for_subscribers_s:=0.0",
                         "-p", "replay.rate:=4.0", "-p", "replay.start_offset_s:=0.5"],
-                       env=ros_env(DOMAIN + 2), capture_output=True, text=True, timeout=120,
+                       env=ros_env(rosutil.domain(11)), capture_output=True, text=True, timeout=120,
                        cwd=REPO)
     out = r.stdout + r.stderr
     assert r.returncode == 0, out

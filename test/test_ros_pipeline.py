@@ -13,6 +13,7 @@ import pytest
 
 from neurncd_ros.core import classes, msgconv
 
+import rosutil
 from rosutil import apply_ros_env, node_processes, ros_env, spin_until, start
 
 pytestmark = pytest.mark.ros
@@ -46,7 +47,7 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     bag, the nodes label every keyframe, the map can be saved on request, and once the
     nodes have drained bringup stops them all and exits 0."""
     bag, frames = scene_bag
-    domain = 141
+    domain = rosutil.domain(7)
     apply_ros_env(domain)
     import rclpy
     from geometry_msgs.msg import PoseStamped
@@ -114,7 +115,7 @@ def test_no_node_outlives_a_killed_bringup(scene_bag, tmp_path):
     """Even SIGKILL, which bringup cannot handle, leaves no node behind: each child has a
     parent-death signal."""
     bag, _ = scene_bag
-    domain = 142
+    domain = rosutil.domain(8)
     log = tmp_path / "bringup.log"
     proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ros-args",
                   "-p", "replay.loop:=true"], ros_env(domain), log)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import typing
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 _META = "neurncd"
 
@@ -21,14 +21,17 @@ class ConfigError(ValueError):
 
 
 def param(default: Any, doc: str, *, lo: float | None = None, hi: float | None = None,
-          choices: Sequence[Any] | None = None, unit: str = "") -> Any:
+          choices: Sequence[Any] | Callable[[], Sequence[Any]] | None = None,
+          unit: str = "") -> Any:
     """Declare one parameter: default, one-line doc, and the allowed values.
 
     ``lo``/``hi`` are inclusive bounds for numbers (and for every element of a
-    numeric list); ``choices`` lists the allowed values of a string.
+    numeric list); ``choices`` lists the allowed values of a string, or is a
+    function returning them when they are registered at run time (backends).
     """
-    meta = {"doc": doc, "lo": lo, "hi": hi,
-            "choices": tuple(choices) if choices is not None else None, "unit": unit}
+    if choices is not None and not callable(choices):
+        choices = tuple(choices)
+    meta = {"doc": doc, "lo": lo, "hi": hi, "choices": choices, "unit": unit}
     if isinstance(default, list):
         return dataclasses.field(default_factory=lambda d=tuple(default): list(d),
                                  metadata={_META: meta})
@@ -80,8 +83,11 @@ def specs(cls: type) -> list[ParamSpec]:
         else:
             ftype, elem_type = hint, None
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        choices = meta["choices"]
+        if callable(choices):
+            choices = tuple(choices())
         out.append(ParamSpec(f.name, ftype, elem_type, default, meta["doc"], meta["lo"],
-                             meta["hi"], meta["choices"], meta["unit"]))
+                             meta["hi"], choices, meta["unit"]))
     return out
 
 

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import os
 
+import torch
+
 from ..core import msgconv
 from ..core.engine.health import Health  # before rclpy: scipy/torch load first
 from ..core.engine.mapping import MapperStage
@@ -46,6 +48,8 @@ def make_node():
         def __init__(self) -> None:
             super().__init__("mapper", automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
+            if self.cfg.mapper.num_threads > 0:  # this process is the mapper's
+                torch.set_num_threads(self.cfg.mapper.num_threads)
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
             if self.cfg.mapper.num_threads > 0:
                 torch.set_num_threads(self.cfg.mapper.num_threads)

@@ -67,7 +67,8 @@ class BackboneConfig:
                                    "does; refined = 0 is normalised like any depth (hole-free "
                                    "depth only)", choices=("raw", "refined"))
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
-    num_threads: int = param(1, "torch CPU threads (0 = leave torch's setting); 1 because the "
+    num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
+                             "(0 = leave torch's setting); 1 because the "
                              "nodes share the cores: 2 threads against a busy process took "
                              "2.5 s per frame instead of 41 ms", lo=0, hi=256)
 
@@ -244,7 +245,5 @@ def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:
         raise ValueError(f"backbone kind must be 'default' or 'esanet', got {cfg.kind!r}")
     if cfg.device == "cuda" and not torch.cuda.is_available():
         raise ValueError("backbone device 'cuda' requested but torch sees no CUDA device")
-    if cfg.num_threads > 0 and cfg.device == "cpu":
-        torch.set_num_threads(cfg.num_threads)
     _input_size(cfg)  # fail early on a bad size
     return _load_esanet(cfg) if cfg.kind == "esanet" else _load_default(cfg)

@@ -29,7 +29,6 @@ keyframes queue here, where they are held anyway.
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
 import json
 import os
@@ -102,11 +101,6 @@ class MapperNodeConfig:
     queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
-
-
-RENDER_BATCH = 4096
-"""Rays rendered between two checks of the cancel flag (a node stops within a fraction of a
-second even mid-render)."""
 
 
 @dataclasses.dataclass
@@ -391,17 +385,11 @@ class MapperStage:
             intr = f.intrinsics.scaled(w, h)
             origins, dirs = rays(f.pose, intr, u, v)
             z = resize_to(f.depth, h, w, cv2.INTER_NEAREST)[v, u]
-            paused = mapper.paused() if hasattr(mapper, "paused") else contextlib.nullcontext()
-            parts = []
-            with paused:
-                for i in range(0, len(u), RENDER_BATCH):
-                    if cancel is not None and cancel.is_set():
-                        raise RuntimeError("rendering cancelled (shutting down)")
-                    parts.append(mapper.render_rays(origins[i:i + RENDER_BATCH],
-                                                    dirs[i:i + RENDER_BATCH],
-                                                    z[i:i + RENDER_BATCH])["embedding"])
+            # The field pauses its training while it renders (mapper.yield_to_render) and
+            # checks ``cancel`` between chunks (a node stops promptly even mid-render).
+            field = mapper.render_rays(origins, dirs, z, cancel=cancel)["embedding"]
             wt = weight[sel][:, None]
-            emb[sel] = wt * np.concatenate(parts) + (1.0 - wt) * backbone[sel]
+            emb[sel] = wt * field + (1.0 - wt) * backbone[sel]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])
         self.health.count("views")

@@ -72,9 +72,7 @@ def mapper_factory(cfg) -> Callable[[int], Any]:
     """channels -> a new Mapper configured by ``cfg`` (the whole configuration)."""
     from ..field.mapper import Mapper
 
-    if hasattr(Mapper, "from_config"):
-        return lambda channels: Mapper.from_config(cfg, channels)
-    return lambda channels: Mapper(cfg.mapper, channels)
+    return lambda channels: Mapper.from_config(cfg, channels)
 
 
 class OfflineEngine:

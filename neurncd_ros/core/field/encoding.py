@@ -59,11 +59,13 @@ class TriPlane(nn.Module):
     start fresh. The three plane features of a level are multiplied (K-planes
     style), levels are concatenated. Coordinates are normalised to [-1, 1]
     over the box (texel centres at the corners: ``align_corners=True``).
+    Fresh texels are drawn from the generator given to each method.
     """
 
     AXES = ((0, 1), (0, 2), (1, 2))
 
-    def __init__(self, cell_sizes: list[float], channels: int, init_scale: float = 0.1) -> None:
+    def __init__(self, cell_sizes: list[float], channels: int, generator: torch.Generator,
+                 init_scale: float = 0.1) -> None:
         super().__init__()
         if not cell_sizes or min(cell_sizes) <= 0:
             raise ValueError(f"tri-plane cell sizes must be positive, got {cell_sizes}")
@@ -72,7 +74,7 @@ class TriPlane(nn.Module):
         self.channels = channels
         self.init_scale = init_scale
         self.register_buffer("cells", torch.ones(3, dtype=torch.long))  # coarse cells per axis
-        self.planes = nn.ParameterList([nn.Parameter(self._fresh(2, 2))
+        self.planes = nn.ParameterList([nn.Parameter(self._fresh(2, 2, generator))
                                         for _ in range(3 * len(self.ratios))])
 
     @property
@@ -83,21 +85,22 @@ class TriPlane(nn.Module):
         """Texel count per axis (x, y, z) of a level."""
         return [int(c) * self.ratios[level] + 1 for c in self.cells]
 
-    def _fresh(self, h: int, w: int) -> torch.Tensor:
+    def _fresh(self, h: int, w: int, generator: torch.Generator) -> torch.Tensor:
         # Mean 1 so that the product of three planes starts as a small perturbation.
-        return 1.0 + self.init_scale * (2 * torch.rand(1, self.channels, h, w) - 1)
+        u = torch.rand(1, self.channels, h, w, generator=generator)
+        return 1.0 + self.init_scale * (2 * u - 1)
 
     @torch.no_grad()
-    def allocate(self, coarse_cells: list[int]) -> None:
+    def allocate(self, coarse_cells: list[int], generator: torch.Generator) -> None:
         """Fresh planes for a box of ``coarse_cells`` coarse cells per axis."""
         self.cells.copy_(torch.as_tensor(coarse_cells, dtype=torch.long))
         for lvl in range(len(self.ratios)):
             n = self.texels(lvl)
             for k, (a, b) in enumerate(self.AXES):
-                self.planes[3 * lvl + k] = nn.Parameter(self._fresh(n[b], n[a]))
+                self.planes[3 * lvl + k] = nn.Parameter(self._fresh(n[b], n[a], generator))
 
     @torch.no_grad()
-    def grow(self, pad_lo: list[int], pad_hi: list[int]) -> None:
+    def grow(self, pad_lo: list[int], pad_hi: list[int], generator: torch.Generator) -> None:
         """Extend the box by whole coarse cells below/above on each axis, keeping all texels."""
         pad_lo, pad_hi = [int(p) for p in pad_lo], [int(p) for p in pad_hi]
         if min(pad_lo + pad_hi) < 0:
@@ -106,7 +109,8 @@ class TriPlane(nn.Module):
             for k, (a, b) in enumerate(self.AXES):
                 old = self.planes[3 * lvl + k].detach()
                 h, w = old.shape[-2:]
-                new = self._fresh(h + q * (pad_lo[b] + pad_hi[b]), w + q * (pad_lo[a] + pad_hi[a]))
+                new = self._fresh(h + q * (pad_lo[b] + pad_hi[b]),
+                                  w + q * (pad_lo[a] + pad_hi[a]), generator)
                 new[..., q * pad_lo[b]:q * pad_lo[b] + h, q * pad_lo[a]:q * pad_lo[a] + w] = old
                 self.planes[3 * lvl + k] = nn.Parameter(new)
         self.cells += torch.as_tensor(pad_lo) + torch.as_tensor(pad_hi)

@@ -7,10 +7,27 @@ head (Semantic-NeRF's layout), so the embedding is view-independent.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
 from .encoding import PositionalEncoding, TriPlane, spherical_harmonics
+
+
+def linear(n_in: int, n_out: int, generator: torch.Generator) -> nn.Linear:
+    """``nn.Linear(n_in, n_out)`` with torch's default init drawn from ``generator``.
+
+    The layer is built without touching the global generator (``skip_init``), then
+    initialised as ``nn.Linear.reset_parameters`` does: Kaiming-uniform weights
+    (a = sqrt 5) and biases uniform in +-1/sqrt(n_in).
+    """
+    layer = nn.utils.skip_init(nn.Linear, n_in, n_out)
+    with torch.no_grad():
+        nn.init.kaiming_uniform_(layer.weight, a=math.sqrt(5), generator=generator)
+        bound = 1.0 / math.sqrt(n_in) if n_in > 0 else 0.0
+        layer.bias.uniform_(-bound, bound, generator=generator)
+    return layer
 
 
 class EmbeddingField(nn.Module):
@@ -39,27 +56,30 @@ class NerfField(EmbeddingField):
     Positional encoding with 10 position / 4 direction octaves plus the raw input;
     the embedding head (256 -> 128 -> S) and the density read the trunk before
     the view direction joins the colour branch (256 + 27 -> 128 -> 3).
-    World coordinates are used as they are (as Semantic-NeRF does).
+    World coordinates are used as they are (as Semantic-NeRF does). Initial
+    weights are drawn from ``generator``.
     """
 
-    def __init__(self, channels: int, depth: int = 8, width: int = 256, skip: int = 4,
-                 pos_freq: int = 10, dir_freq: int = 4) -> None:
+    def __init__(self, channels: int, generator: torch.Generator, depth: int = 8,
+                 width: int = 256, skip: int = 4, pos_freq: int = 10,
+                 dir_freq: int = 4) -> None:
         super().__init__()
         self.channels = channels
         self.pos_enc, self.dir_enc = PositionalEncoding(pos_freq), PositionalEncoding(dir_freq)
         pin, din = self.pos_enc.out_dim(), self.dir_enc.out_dim()
         self.skip = skip
+        g = generator
         layers = []
         for i in range(depth):
             fan_in = pin if i == 0 else width + (pin if i == skip + 1 else 0)
-            layers.append(nn.Linear(fan_in, width))
+            layers.append(linear(fan_in, width, g))
         self.trunk = nn.ModuleList(layers)
-        self.sigma_head = nn.Linear(width, 1)
-        self.embedding_head = nn.Sequential(nn.Linear(width, width // 2), nn.ReLU(),
-                                            nn.Linear(width // 2, channels))
-        self.feature = nn.Linear(width, width)
-        self.colour_head = nn.Sequential(nn.Linear(width + din, width // 2), nn.ReLU(),
-                                         nn.Linear(width // 2, 3))
+        self.sigma_head = linear(width, 1, g)
+        self.embedding_head = nn.Sequential(linear(width, width // 2, g), nn.ReLU(),
+                                            linear(width // 2, channels, g))
+        self.feature = linear(width, width, g)
+        self.colour_head = nn.Sequential(linear(width + din, width // 2, g), nn.ReLU(),
+                                         linear(width // 2, 3, g))
 
     def geometry(self, x):
         px = self.pos_enc(x)
@@ -81,23 +101,26 @@ class TriPlaneField(EmbeddingField):
     Points are normalised into [-1, 1] by the scene AABB (buffers ``lo``/``hi``,
     grown by :meth:`set_bounds`). Density uses an exponential activation (sharp
     surfaces need a large dynamic range); colour sees SH of the direction.
+    Initial weights and planes are drawn from ``generator``.
     """
 
-    def __init__(self, channels: int, cell_sizes: list[float], plane_channels: int = 8,
-                 hidden: int = 64, geo_features: int = 15, sh_degree: int = 3) -> None:
+    def __init__(self, channels: int, cell_sizes: list[float], generator: torch.Generator,
+                 plane_channels: int = 8, hidden: int = 64, geo_features: int = 15,
+                 sh_degree: int = 3) -> None:
         super().__init__()
         self.channels = channels
         self.sh_degree = sh_degree
         self.register_buffer("lo", -torch.ones(3))
         self.register_buffer("hi", torch.ones(3))
-        self.planes = TriPlane(cell_sizes, plane_channels)
-        self.trunk = nn.Sequential(nn.Linear(self.planes.out_dim, hidden), nn.ReLU(),
-                                   nn.Linear(hidden, hidden), nn.ReLU())
-        self.sigma_head = nn.Linear(hidden, 1)
-        self.embedding_head = nn.Linear(hidden, channels)
-        self.geo_head = nn.Linear(hidden, geo_features)
-        self.colour_head = nn.Sequential(nn.Linear(geo_features + sh_degree ** 2, hidden),
-                                         nn.ReLU(), nn.Linear(hidden, 3))
+        g = generator
+        self.planes = TriPlane(cell_sizes, plane_channels, g)
+        self.trunk = nn.Sequential(linear(self.planes.out_dim, hidden, g), nn.ReLU(),
+                                   linear(hidden, hidden, g), nn.ReLU())
+        self.sigma_head = linear(hidden, 1, g)
+        self.embedding_head = linear(hidden, channels, g)
+        self.geo_head = linear(hidden, geo_features, g)
+        self.colour_head = nn.Sequential(linear(geo_features + sh_degree ** 2, hidden, g),
+                                         nn.ReLU(), linear(hidden, 3, g))
 
     def normalise(self, x: torch.Tensor) -> torch.Tensor:
         return 2 * (x - self.lo) / (self.hi - self.lo) - 1
@@ -117,16 +140,18 @@ class TriPlaneField(EmbeddingField):
         return self.planes.coarse_cell
 
     @torch.no_grad()
-    def set_bounds(self, lo: torch.Tensor, hi: torch.Tensor, keep: bool = True) -> None:
+    def set_bounds(self, lo: torch.Tensor, hi: torch.Tensor, generator: torch.Generator,
+                   keep: bool = True) -> None:
         """Move the AABB (corners on the coarse lattice); ``keep`` pads the learnt planes,
-        otherwise fresh planes are allocated. Creates new plane tensors either way."""
+        otherwise fresh planes are allocated (new texels drawn from ``generator``).
+        Creates new plane tensors either way."""
         lo, hi = lo.to(self.lo), hi.to(self.hi)
         cells = torch.round((hi - lo) / self.cell).long()
         if keep:
             pad_lo = torch.round((self.lo - lo) / self.cell).long()
             pad_hi = cells - self.planes.cells - pad_lo
-            self.planes.grow(pad_lo.tolist(), pad_hi.tolist())
+            self.planes.grow(pad_lo.tolist(), pad_hi.tolist(), generator)
         else:
-            self.planes.allocate(cells.tolist())
+            self.planes.allocate(cells.tolist(), generator)
         self.lo.copy_(lo)
         self.hi.copy_(lo + cells.to(lo) * self.cell)

@@ -1,91 +1,82 @@
 """Incremental Embedding-NeRF mapper: keyframes in, rendered embedding and entropy out.
 
+(One module of about 520 lines: threading, pausing, snapshots, rendering and
+persistence all guard the same model state, and read best side by side.)
+
+The mapper owns the keyframe buffer, the scene box, the optimiser, the
+training thread and the random generators; everything that differs between
+fields (sampling, losses, rays per iteration, what the box means to the
+parameters) is asked of the backend's ``FieldModel`` (``backends``), built
+from its own config section ``mapper.<backend>``.
+
 Threading: ``start()`` trains in a background thread, independent of the
 callbacks that call ``add_keyframe``. The model and optimiser are guarded by
-one lock held for each optimiser step and for tri-plane reallocation (so an
-``add_keyframe`` that grows the fast field's box waits for at most one step;
-the reference backend's box grows without waiting); ``render`` and
-``query`` work on a snapshot copied under that lock once per training
-iteration, so they never wait for more than one step and never see a
-half-updated model.
+one lock held for each optimiser step and for parameter reallocation (so an
+``add_keyframe`` that grows a box-shaped backend's box waits for at most one
+step; other backends' boxes grow without waiting); ``render`` and ``query``
+work on a snapshot copied under that lock once per training iteration, so they
+never wait for more than one step and never see a half-updated model.
+``paused()`` holds the training thread between iterations, and ``render``
+does so itself (``yield_to_render``): on two cores a render then gets the CPU
+instead of sharing it with training.
 
 Scene bounds: an AABB from the back-projected keyframe depth (plus a margin)
-gives each ray's near/far; it only grows, by whole coarse tri-plane cells, so
-the fast backend's planes are padded and keep every learnt texel exactly
-(their Adam state restarts, the MLPs' is kept). Texel size is fixed; the box
-stops growing at ``max_plane_texels`` (then ``bounds_clipped`` is set).
+gives each ray's near/far; it only grows, by whole cells of the backend's
+lattice, so the fast backend's planes are padded and keep every learnt texel
+exactly (their Adam state restarts, the MLPs' is kept). Past the backend's
+cell cap the box stops growing (then ``bounds_clipped`` is set).
+
+Randomness: the initial weights, new texels and sample jitter come from one
+``torch.Generator``, the training rays from one ``np.random.Generator``, both
+the mapper's own and seeded from ``mapper.seed`` (``reset`` reseeds them), so
+mappers in one process never affect each other. The mapper sets no thread
+count: the executable that owns the process applies ``mapper.num_threads``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
-from ..camera import Intrinsics, backproject, camera_directions, check_pose, pixel_grid
+from ..camera import Intrinsics, camera_directions, check_pose, pixel_grid
 from ..frame import Frame
-from ..params import build, param, to_dict
+from ..params import ConfigError, build, param, specs, to_dict
+from . import backends, scenebox
 from . import losses as L
+from .backends import FieldModel, RayBatch
 from .keyframes import KeyframeBuffer, KeyframeConfig, KeyframeInfo, check_embedding
-from .fields import TriPlaneField
-from .models import FastModel, FieldModel, RayBatch, ReferenceModel
 from .samplers import aabb_near_far
 
-SAVE_VERSION = 1
+SAVE_VERSION = 2
+"""Map file layout; 2 records the keyframe and backend sections beside the mapper's."""
+
+
+class RenderCancelled(Exception):
+    """A render stopped early because its ``cancel`` event was set."""
 
 
 @dataclasses.dataclass(frozen=True)
-class MapperConfig(KeyframeConfig):
-    """Embedding-NeRF mapper: backend, losses, optimisation, rendering (+ keyframe buffer)."""
+class MapperConfig:
+    """Embedding-NeRF mapper: backend choice, shared loss weight, scene box, rendering, threads.
+
+    Each backend's own settings are the section ``mapper.<backend>``; the
+    keyframe buffer's are the section ``keyframes``.
+    """
 
     backend: str = param("fast", "field backend: tri-plane 'fast' or the paper's MLP "
-                         "'reference'", choices=("fast", "reference"))
+                         "'reference' (settings in mapper.<backend>)", choices=backends.names)
     lambda_embedding: float = param(0.5, "weight of the embedding KL loss L_e against the "
                                     "photometric loss", lo=0.0, hi=100.0)
-    embedding_confidence_power: float = param(
-        2.0, "weight each ray's embedding loss by (1 - backbone entropy / log S)^power "
-        "(fast): where views disagree the field follows the confident ones (0 = plain mean)",
-        lo=0.0, hi=16.0)
-    rays_per_iteration: int = param(2048, "training rays per iteration (fast backend)",
-                                    lo=16, hi=65536)
-    reference_rays_per_iteration: int = param(1024, "training rays per iteration "
-                                              "(reference backend)", lo=16, hi=65536)
-    lr_grid: float = param(2e-2, "Adam learning rate of the tri-planes (fast)", lo=0.0, hi=1.0)
-    lr_mlp: float = param(5e-3, "Adam learning rate of the MLP heads (fast)", lo=0.0, hi=1.0)
-    lr_reference: float = param(5e-4, "Adam learning rate of the reference MLPs",
-                                lo=0.0, hi=1.0)
-    plane_cell_sizes: list[float] = param([0.16, 0.04, 0.02], "texel spacing of each tri-plane "
-                                          "level, coarsest first; finer ones are rounded to "
-                                          "the coarsest / an integer (fast)", lo=0.001,
-                                          hi=10.0, unit="m")
-    max_plane_texels: int = param(1024, "most texels per axis of the finest tri-plane level; "
-                                  "the scene box stops growing there (memory bound, fast)",
-                                  lo=8, hi=8192)
-    plane_channels: int = param(8, "feature channels per tri-plane level (fast)", lo=1, hi=128)
-    hidden: int = param(32, "hidden width of the fast field's MLP heads", lo=8, hi=512)
-    surface_samples: int = param(16, "training samples per ray in the band around the "
-                                 "measured depth (fast)", lo=1, hi=512)
-    free_samples: int = param(8, "training samples per ray stratified over [near, far] "
-                              "(fast)", lo=1, hi=512)
-    surface_band: float = param(0.1, "half-width of the depth-guided sampling band (fast)",
-                                lo=0.001, hi=2.0, unit="m")
-    lambda_depth: float = param(0.5, "weight of the L1 depth loss (fast)", lo=0.0, hi=100.0)
-    lambda_free: float = param(1.0, "weight of the free-space loss (fast)", lo=0.0, hi=100.0)
-    render_coarse_samples: int = param(48, "density-only stratified samples per rendered "
-                                       "ray (fast)", lo=2, hi=1024)
-    render_fine_samples: int = param(24, "importance samples per rendered ray (fast)",
-                                     lo=1, hi=1024)
-    coarse_samples: int = param(64, "stratified coarse samples per ray (reference)",
-                                lo=2, hi=1024)
-    fine_samples: int = param(128, "importance fine samples per ray (reference)",
-                              lo=0, hi=1024)
     near: float = param(0.05, "closest distance rendered from a camera", lo=0.0, hi=10.0,
                         unit="m")
     max_depth: float = param(10.0, "measured depth beyond this is ignored", lo=0.1,
@@ -97,71 +88,74 @@ class MapperConfig(KeyframeConfig):
     min_iterations_before_publish: int = param(100, "training iterations a keyframe gets "
                                                "before it is ready to publish", lo=0, hi=10 ** 7)
     render_with_depth: bool = param(True, "render a frame that has measured depth with "
-                                    "samples around it, as in training (fast backend; "
-                                    "otherwise, and for the reference, from the field alone)")
+                                    "samples around it, as in training (if the backend "
+                                    "places samples by depth: fast; otherwise from the "
+                                    "field alone)")
     render_chunk: int = param(1 << 17, "field samples (rays x samples per ray) evaluated per "
                               "render chunk: bounds render memory", lo=1024, hi=1 << 26)
     train_chunk: int = param(1 << 16, "field samples per backward pass; larger batches are "
                              "split and their gradients summed (bounds training memory)",
                              lo=1024, hi=1 << 26)
-    num_threads: int = param(1, "torch intra-op threads (0 = leave as is); 1 because the "
-                             "nodes share the cores and OpenMP threads spinning against "
-                             "another busy process made an iteration 8x slower (1.2 vs 0.16 s)",
-                             lo=0, hi=256)
-    seed: int = param(0, "seed of the field initialisation and ray sampling", lo=0,
-                      hi=2 ** 31 - 1)
+    yield_to_render: bool = param(True, "pause background training while a view renders, so "
+                                  "that the render gets the CPU")
+    num_threads: int = param(1, "torch intra-op threads the executable running the mapper "
+                             "sets (0 = leave torch's setting); 1 because the nodes share "
+                             "the cores (README, Limits)", lo=0, hi=256)
+    seed: int = param(0, "seed of the mapper's generators: field initialisation, sample "
+                      "jitter and ray sampling", lo=0, hi=2 ** 31 - 1)
 
-
-def build_model(cfg: MapperConfig, channels: int) -> FieldModel:
-    """The backend named by ``cfg.backend``."""
-    if cfg.backend == "reference":
-        return ReferenceModel(channels, cfg.coarse_samples, cfg.fine_samples,
-                              cfg.lambda_embedding, cfg.lr_reference)
-    return FastModel(channels, list(cfg.plane_cell_sizes), cfg.plane_channels, cfg.hidden,
-                     cfg.surface_samples, cfg.free_samples, cfg.surface_band,
-                     cfg.render_coarse_samples, cfg.render_fine_samples, cfg.lambda_embedding,
-                     cfg.lambda_depth, cfg.lambda_free, cfg.lr_grid, cfg.lr_mlp,
-                     cfg.embedding_confidence_power)
-
-
-def _keyframe_extent(frame: Frame, max_depth: float) -> tuple[np.ndarray, np.ndarray]:
-    """Robust box of what a frame sees (1st..99th percentile of its depth points)."""
-    depth = np.where(frame.depth <= max_depth, frame.depth, 0.0).astype(np.float32)
-    pts, _ = backproject(depth, frame.intrinsics, frame.pose)
-    if len(pts) < 16:
-        # No usable depth: assume the frustum up to 3 m.
-        intr = frame.intrinsics
-        u = np.array([0, intr.width - 1, 0, intr.width - 1])
-        v = np.array([0, 0, intr.height - 1, intr.height - 1])
-        d = camera_directions(intr, u, v) * 3.0
-        pts = d @ frame.pose[:3, :3].T + frame.pose[:3, 3]
-    pts = np.concatenate([pts, frame.pose[None, :3, 3]])
-    return np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    @staticmethod
+    def subsections() -> dict[str, type]:
+        """``mapper.<name>``: one config section per registered backend."""
+        return backends.config_classes()
 
 
 class Mapper:
-    """Online Embedding-NeRF: keyframe buffer, background training, rendering."""
+    """Online Embedding-NeRF: keyframe buffer, background training, rendering.
 
-    def __init__(self, cfg: MapperConfig | None = None, channels: int = 9) -> None:
+    ``Mapper(cfg, channels, keyframes, backend_cfg)``: the ``mapper`` section,
+    the embedding channels S, the ``keyframes`` section and the backend's own
+    section (defaults where None). :meth:`from_config` takes them from a whole
+    configuration.
+    """
+
+    def __init__(self, cfg: MapperConfig | None = None, channels: int = 9,
+                 keyframes: KeyframeConfig | None = None, backend_cfg: Any = None) -> None:
         self.cfg = cfg or MapperConfig()
         if channels < 1:
             raise ValueError(f"channels must be >= 1, got {channels}")
         self.channels = int(channels)
-        if self.cfg.num_threads > 0:
-            torch.set_num_threads(self.cfg.num_threads)
+        self._backend = backends.get(self.cfg.backend)
+        self.backend_cfg = backend_cfg if backend_cfg is not None else self._backend.config()
+        if not isinstance(self.backend_cfg, self._backend.config):
+            raise TypeError(f"backend {self.cfg.backend!r} takes a "
+                            f"{self._backend.config.__name__}, got "
+                            f"{type(self.backend_cfg).__name__}")
+        self.keyframe_cfg = keyframes or KeyframeConfig()
         self._lock = threading.RLock()  # model + optimiser
         self._bounds_lock = threading.Lock()  # taken before _lock when both are needed
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._pause = threading.Condition()  # guards _pauses and _training
+        self._pauses = 0
+        self._training = False  # the background thread is inside an iteration
         self.last_error: BaseException | None = None
-        self.buffer = KeyframeBuffer(self.cfg)
+        self.buffer = KeyframeBuffer(self.keyframe_cfg)
         self._init_model()
+
+    @classmethod
+    def from_config(cls, cfg: Any, channels: int) -> "Mapper":
+        """A mapper from a whole configuration: anything with ``.mapper``, ``.keyframes``
+        and ``.section("mapper.<backend>")`` (as ``neurncd_ros.config.Config``)."""
+        return cls(cfg.mapper, channels, keyframes=cfg.keyframes,
+                   backend_cfg=cfg.section(f"mapper.{cfg.mapper.backend}"))
 
     # ------------------------------------------------------------ model state
     def _init_model(self) -> None:
-        torch.manual_seed(self.cfg.seed)
+        self._gen = torch.Generator().manual_seed(self.cfg.seed)
         self._rng = np.random.default_rng(self.cfg.seed)
-        self.model = build_model(self.cfg, self.channels)
+        self.model: FieldModel = self._backend.model(self.backend_cfg, self.channels, self.cfg,
+                                                     self._gen)
         self._opt = torch.optim.Adam(self.model.param_groups())
         self._lo: np.ndarray | None = None
         self._hi: np.ndarray | None = None
@@ -188,59 +182,28 @@ class Mapper:
             if p in old.state:
                 self._opt.state[p] = old.state[p]
 
-    def _cell_and_cap(self) -> tuple[float, int]:
-        """Lattice the box snaps to and the most coarse cells per axis."""
-        field = self.model.field
-        if isinstance(field, TriPlaneField):
-            q = max(field.planes.ratios)
-            return field.cell, max(1, (self.cfg.max_plane_texels - 1) // q)
-        return float(self.cfg.plane_cell_sizes[0]), 1 << 30
-
     def _grow_bounds(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Grow the AABB (whole coarse cells, with margin and slack) to hold [lo, hi]."""
+        """Grow the box (backend lattice, with margin and slack) to hold [lo, hi]."""
         lo, hi = lo - self.cfg.bounds_margin, hi + self.cfg.bounds_margin
         with self._bounds_lock:
-            if self._lo is not None and np.all(lo >= self._lo) and np.all(hi <= self._hi):
+            cell, cap = self.model.box_lattice()
+            old = None if self._lo is None else (self._lo, self._hi)
+            box, clipped = scenebox.grow(old, lo, hi, cell, cap, self.cfg.bounds_growth)
+            self.bounds_clipped = self.bounds_clipped or clipped
+            if box is None:
                 return
-            cell, cap = self._cell_and_cap()
-            slack = self.cfg.bounds_growth * (np.maximum(hi, self._hi if self._lo is not None
-                                                         else hi)
-                                              - np.minimum(lo, self._lo if self._lo is not None
-                                                           else lo)) / 2
-            if self._lo is None:
-                n_lo = np.zeros(3)
-                base_lo = lo - slack
-                cells = np.ceil((hi + slack - base_lo) / cell)
-                n_hi = np.minimum(cells, cap)
-                self.bounds_clipped = bool(np.any(cells > cap))
-            else:
-                base_lo = self._lo
-                old = np.round((self._hi - self._lo) / cell)
-                n_lo = np.where(lo < self._lo, np.ceil((self._lo - lo + slack) / cell), 0)
-                n_hi = np.where(hi > self._hi, np.ceil((hi + slack - self._hi) / cell), 0)
-                room = np.maximum(cap - old, 0)
-                want = n_lo + n_hi
-                scale = np.where(want > room, room / np.maximum(want, 1), 1.0)
-                self.bounds_clipped = self.bounds_clipped or bool(np.any(want > room))
-                n_lo, n_hi = np.floor(n_lo * scale), np.floor(n_hi * scale)
-                n_hi = n_hi + old
-                if not np.any(n_lo + n_hi > old):
-                    return
-            new_lo = base_lo - n_lo * cell
-            new_hi = new_lo + (n_lo + n_hi) * cell
-            field = self.model.field
-            if isinstance(field, TriPlaneField):  # new plane tensors: not during a step
+            if self.model.box_holds_parameters:  # new parameters: not during a step
                 with self._lock:
-                    field.set_bounds(torch.tensor(new_lo, dtype=torch.float32),
-                                     torch.tensor(new_hi, dtype=torch.float32),
-                                     keep=self._lo is not None)
+                    self.model.set_bounds(torch.tensor(box[0], dtype=torch.float32),
+                                          torch.tensor(box[1], dtype=torch.float32),
+                                          keep=old is not None, generator=self._gen)
                     self._rebuild_optimizer()
-                    self._lo, self._hi = new_lo, new_hi
+                    self._lo, self._hi = box
                     self._snap = None
             else:
                 # Only near/far change; a reader mixing old and new corners still gets a
                 # valid box (the box only grows), so no need to wait for a slow step.
-                self._lo, self._hi = new_lo, new_hi
+                self._lo, self._hi = box
 
     # ------------------------------------------------------------ keyframes
     def add_keyframe(self, frame: Frame, embedding: np.ndarray, force: bool = False) -> bool:
@@ -258,7 +221,7 @@ class Mapper:
         if not force and not self.buffer.should_admit(frame.pose, frame.stamp_ns):
             return False
         # Bounds first: once the keyframe is in the buffer its rays may be drawn.
-        self._grow_bounds(*_keyframe_extent(frame, self.cfg.max_depth))
+        self._grow_bounds(*scenebox.keyframe_extent(frame, self.cfg.max_depth))
         return self.buffer.add(frame, emb, force=True)
 
     def ready_keyframes(self, min_iterations: int | None = None) -> list[KeyframeInfo]:
@@ -269,9 +232,7 @@ class Mapper:
 
     # ------------------------------------------------------------ training
     def _batch(self) -> RayBatch:
-        n = (self.cfg.reference_rays_per_iteration if self.cfg.backend == "reference"
-             else self.cfg.rays_per_iteration)
-        r = self.buffer.sample_rays(n, self._rng)
+        r = self.buffer.sample_rays(self.model.rays_per_iteration, self._rng)
         depth = np.where(r["depth"] <= self.cfg.max_depth, r["depth"], 0.0)
         return RayBatch(torch.from_numpy(r["origins"]).float(),
                         torch.from_numpy(r["dirs"]).float(), torch.from_numpy(r["rgb"]),
@@ -288,12 +249,10 @@ class Mapper:
         n = batch.origins.shape[0]
         chunk = max(1, self.cfg.train_chunk // self.model.train_samples_per_ray)
         sums: dict[str, torch.Tensor] = {}
-        for s in range(0, n, chunk):
-            part = RayBatch(*(getattr(batch, f.name)[s:s + chunk]
-                              for f in dataclasses.fields(RayBatch)))
+        for part in batch.split(chunk):
             share = part.origins.shape[0] / n
             near, far = self._near_far(part.origins, part.dirs)
-            out = self.model.losses(part, near, far)
+            out = self.model.losses(part, near, far, self._gen)
             (out["total"] * share).backward()
             for k, v in out.items():
                 sums[k] = sums.get(k, 0.0) + v.detach() * share
@@ -334,9 +293,39 @@ class Mapper:
                 if len(self.buffer) == 0:
                     time.sleep(0.01)
                     continue
-                self.step(1)
+                with self._pause:
+                    while self._pauses and not self._stop.is_set():
+                        self._pause.wait()
+                    if self._stop.is_set():
+                        break
+                    self._training = True
+                try:
+                    self.step(1)
+                finally:
+                    with self._pause:
+                        self._training = False
+                        self._pause.notify_all()
         except BaseException as exc:  # surfaced through last_error, thread ends
             self.last_error = exc
+
+    @contextlib.contextmanager
+    def paused(self):
+        """While inside, the background thread starts no new training iteration.
+
+        Entering waits for the iteration under way to finish; pauses nest, and
+        training resumes when the last one exits. :meth:`step` called directly
+        is not affected.
+        """
+        with self._pause:
+            self._pauses += 1
+            while self._training and threading.current_thread() is not self._thread:
+                self._pause.wait()
+        try:
+            yield self
+        finally:
+            with self._pause:
+                self._pauses -= 1
+                self._pause.notify_all()
 
     def start(self) -> None:
         """Train in a background thread until :meth:`stop`."""
@@ -350,6 +339,8 @@ class Mapper:
     def stop(self) -> None:
         """Stop the background training (waits for the current iteration)."""
         self._stop.set()
+        with self._pause:
+            self._pause.notify_all()
         if self._thread is not None:
             self._thread.join()
             self._thread = None
@@ -359,7 +350,8 @@ class Mapper:
         return self._thread is not None and self._thread.is_alive()
 
     def reset(self) -> None:
-        """Forget everything: keyframes, bounds, weights, optimiser (training thread kept)."""
+        """Forget everything: keyframes, bounds, weights, optimiser; the generators are
+        reseeded, so the mapper is as built (training thread kept)."""
         with self._bounds_lock, self._lock:
             self.buffer.clear()
             self._init_model()
@@ -375,17 +367,20 @@ class Mapper:
                 self._snap_key = key
             return self._snap, self._lo.copy(), self._hi.copy()
 
+    def _render_pause(self):
+        return self.paused() if self.cfg.yield_to_render else contextlib.nullcontext()
+
     @torch.no_grad()
     def render_rays(self, origins: np.ndarray, dirs: np.ndarray,
-                    depth: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                    depth: np.ndarray | None = None,
+                    cancel: threading.Event | None = None) -> dict[str, np.ndarray]:
         """Render world rays (directions z-normalised in their camera) in chunks.
 
         ``depth`` (N,) measured z-depth per ray (0 or non-finite = none; beyond
         ``max_depth`` ignored) lets the fast backend sample around the surface
-        (``render_with_depth``); None renders from the field alone.
+        (``render_with_depth``); None renders from the field alone. ``cancel`` is
+        checked before each chunk: once set, :class:`RenderCancelled` is raised.
         """
-        model, lo, hi = self._snapshot()
-        lo_t, hi_t = torch.tensor(lo, dtype=torch.float32), torch.tensor(hi, dtype=torch.float32)
         o_all = torch.from_numpy(np.asarray(origins, np.float32).reshape(-1, 3))
         d_all = torch.from_numpy(np.asarray(dirs, np.float32).reshape(-1, 3))
         z_all = None
@@ -396,30 +391,38 @@ class Mapper:
             z = np.where(np.isfinite(z) & (z > 0) & (z <= self.cfg.max_depth), z, 0.0)
             z_all = torch.from_numpy(z.astype(np.float32))
         parts: dict[str, list[torch.Tensor]] = {"rgb": [], "depth": [], "embedding": []}
-        per_ray = model.render_samples_per_ray if z_all is None else max(
-            model.render_samples_per_ray, model.train_samples_per_ray)
-        chunk = max(1, self.cfg.render_chunk // per_ray)
-        for s in range(0, o_all.shape[0], chunk):
-            o, d = o_all[s:s + chunk], d_all[s:s + chunk]
-            near, far = aabb_near_far(o, d, lo_t, hi_t, self.cfg.near)
-            out = model.render_rays(o, d, near, far,
-                                    None if z_all is None else z_all[s:s + chunk])
-            for k in parts:
-                parts[k].append(out[k])
+        with self._render_pause():
+            model, lo, hi = self._snapshot()
+            lo_t = torch.tensor(lo, dtype=torch.float32)
+            hi_t = torch.tensor(hi, dtype=torch.float32)
+            per_ray = model.samples_per_rendered_ray(with_depth=z_all is not None)
+            chunk = max(1, self.cfg.render_chunk // per_ray)
+            for s in range(0, o_all.shape[0], chunk):
+                if cancel is not None and cancel.is_set():
+                    raise RenderCancelled(f"render cancelled after {s} of {o_all.shape[0]} "
+                                          "rays")
+                o, d = o_all[s:s + chunk], d_all[s:s + chunk]
+                near, far = aabb_near_far(o, d, lo_t, hi_t, self.cfg.near)
+                out = model.render_rays(o, d, near, far,
+                                        None if z_all is None else z_all[s:s + chunk])
+                for k in parts:
+                    parts[k].append(out[k])
         rgb = torch.cat(parts["rgb"]).clamp(0.0, 1.0)
         emb = torch.cat(parts["embedding"])
         return {"rgb": rgb.numpy(), "depth": torch.cat(parts["depth"]).numpy(),
                 "embedding": emb.numpy(), "entropy": L.entropy_torch(emb).numpy()}
 
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, height: int | None = None,
-               width: int | None = None, depth: np.ndarray | None = None
-               ) -> dict[str, np.ndarray]:
+               width: int | None = None, depth: np.ndarray | None = None,
+               cancel: threading.Event | None = None) -> dict[str, np.ndarray]:
         """Render a view: rgb (H, W, 3) in [0, 1], depth (H, W), embedding (H, W, S), entropy.
 
         With ``height``/``width`` the camera is rendered at that resolution
         (intrinsics scaled accordingly). ``depth``: the view's measured depth
         image at ``intrinsics``' size (resampled, nearest, to the rendered size),
-        used to place the samples (see :meth:`render_rays`).
+        used to place the samples (see :meth:`render_rays`). ``cancel``: set it
+        (from any thread) to stop the render between chunks with
+        :class:`RenderCancelled`, e.g. on shutdown.
         """
         pose = check_pose(pose)
         intr = intrinsics
@@ -438,7 +441,7 @@ class Mapper:
         u, v = pixel_grid(intr.height, intr.width)
         d = camera_directions(intr, u, v) @ pose[:3, :3].T
         o = np.broadcast_to(pose[:3, 3], d.shape)
-        out = self.render_rays(o, d, None if z is None else z[v, u])
+        out = self.render_rays(o, d, None if z is None else z[v, u], cancel)
         h, w = intr.height, intr.width
         return {"rgb": out["rgb"].reshape(h, w, 3).astype(np.float32),
                 "depth": out["depth"].reshape(h, w).astype(np.float32),
@@ -461,10 +464,13 @@ class Mapper:
 
     # ------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
-        """Weights, optimiser, bounds and the keyframe buffer, so training can resume."""
+        """Weights, optimiser, bounds, the keyframe buffer and every config section the map
+        was built with (mapper, keyframes, backend), so training can resume."""
         with self._lock:
             state = {
-                "version": SAVE_VERSION, "config": to_dict(self.cfg), "channels": self.channels,
+                "version": SAVE_VERSION, "channels": self.channels,
+                "config": {"mapper": to_dict(self.cfg), "keyframes": to_dict(self.keyframe_cfg),
+                           "backend": to_dict(self.backend_cfg)},
                 "iterations": self._iterations,
                 "bounds": None if self._lo is None else torch.tensor(np.stack([self._lo,
                                                                               self._hi])),
@@ -475,24 +481,47 @@ class Mapper:
 
     @classmethod
     def load(cls, path: str | Path, **overrides) -> "Mapper":
-        """A mapper restored by :meth:`save` (``overrides``: config values to change)."""
+        """A mapper restored by :meth:`save`.
+
+        ``overrides``: parameter values to change, by name, from the mapper, keyframes
+        or the map's backend section (the backend itself cannot change).
+        """
         state = torch.load(str(path), map_location="cpu", weights_only=True)
-        if not isinstance(state, dict) or state.get("version") != SAVE_VERSION:
-            raise ValueError(f"{path} is not a neurncd mapper file (version {SAVE_VERSION})")
-        cfg = build(MapperConfig, {**state["config"], **overrides})
-        m = cls(cfg, int(state["channels"]))
+        if not isinstance(state, dict) or "version" not in state:
+            raise ValueError(f"{path} is not a neurncd mapper file")
+        if state["version"] != SAVE_VERSION:
+            raise ValueError(f"{path} is a version {state['version']} map; this neurncd reads "
+                             f"version {SAVE_VERSION} (which records the backend's settings): "
+                             "build the map again")
+        sections = {k: dict(v) for k, v in state["config"].items()}
+        backend = sections["mapper"]["backend"]
+        classes = {"mapper": MapperConfig, "keyframes": KeyframeConfig,
+                   "backend": backends.get(backend).config}
+        for key, value in overrides.items():
+            if key == "backend":
+                raise ConfigError(f"{path}: the map was built by backend {backend!r}, which "
+                                  "cannot be changed on load")
+            owner = [n for n, c in classes.items() if key in {s.name for s in specs(c)}]
+            if not owner:
+                raise ConfigError(f"{key}: unknown parameter of a {backend!r} map")
+            sections[owner[0]][key] = value
+        prefixes = {"mapper": "mapper.", "keyframes": "keyframes.",
+                    "backend": f"mapper.{backend}."}
+        built = {n: build(c, sections[n], prefix=prefixes[n]) for n, c in classes.items()}
+        m = cls(built["mapper"], int(state["channels"]), built["keyframes"], built["backend"])
         with m._lock:
             if state["bounds"] is not None:
                 b = state["bounds"].numpy()
                 m._lo, m._hi = b[0].astype(np.float64), b[1].astype(np.float64)
-                if isinstance(m.model.field, TriPlaneField):  # planes sized by the box
-                    m.model.field.set_bounds(torch.tensor(m._lo, dtype=torch.float32),
-                                             torch.tensor(m._hi, dtype=torch.float32),
-                                             keep=False)
+                m.model.set_bounds(torch.tensor(m._lo, dtype=torch.float32),
+                                   torch.tensor(m._hi, dtype=torch.float32), keep=False,
+                                   generator=m._gen)
             m.model.load_state_dict(state["model"])
             m._opt = torch.optim.Adam(m.model.param_groups())
             m._opt.load_state_dict(state["optimizer"])
             m._iterations = int(state["iterations"])
             m.buffer.load_state(state["buffer"])
-            m._rng = np.random.default_rng(cfg.seed + m._iterations)
+            # Resumed training draws fresh numbers, reproducibly from the seed.
+            m._gen.manual_seed(m.cfg.seed + m._iterations)
+            m._rng = np.random.default_rng(m.cfg.seed + m._iterations)
         return m

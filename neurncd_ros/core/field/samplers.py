@@ -2,6 +2,9 @@
 
 Ray parameters ``t`` are z-depths: directions are z-normalised in the camera
 (``camera.camera_directions``), so ``origin + t * direction`` lies at depth t.
+``perturb`` is the generator that jitters the samples in training (drawn from
+it only, never from torch's global generator), or None for the deterministic
+layout of rendering.
 """
 
 from __future__ import annotations
@@ -23,14 +26,19 @@ def aabb_near_far(origins: torch.Tensor, dirs: torch.Tensor, lo: torch.Tensor,
     return near, far
 
 
-def stratified(near: torch.Tensor, far: torch.Tensor, n: int, perturb: bool) -> torch.Tensor:
+def stratified(near: torch.Tensor, far: torch.Tensor, n: int,
+               perturb: torch.Generator | None) -> torch.Tensor:
     """n samples per ray, one in each of n equal bins of [near, far] (centres unless perturb)."""
     u = torch.arange(n, dtype=near.dtype, device=near.device)
-    u = u + (torch.rand(near.shape[0], n, device=near.device) if perturb else 0.5)
+    if perturb is not None:
+        u = u + torch.rand(near.shape[0], n, device=near.device, generator=perturb)
+    else:
+        u = u + 0.5
     return near[:, None] + (far - near)[:, None] * (u / n)
 
 
-def importance(t: torch.Tensor, weights: torch.Tensor, n: int, perturb: bool) -> torch.Tensor:
+def importance(t: torch.Tensor, weights: torch.Tensor, n: int,
+               perturb: torch.Generator | None) -> torch.Tensor:
     """n samples from the piecewise-constant pdf of ``weights`` over bins between ``t``.
 
     Hierarchical sampling of NeRF: bins are centred on the coarse samples.
@@ -40,8 +48,8 @@ def importance(t: torch.Tensor, weights: torch.Tensor, n: int, perturb: bool) ->
     w = weights.detach() + 1e-5
     pdf = w / w.sum(dim=-1, keepdim=True)
     cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, dim=-1)], dim=-1)
-    if perturb:
-        u = torch.rand(t.shape[0], n, device=t.device)
+    if perturb is not None:
+        u = torch.rand(t.shape[0], n, device=t.device, generator=perturb)
     else:
         u = ((torch.arange(n, dtype=t.dtype, device=t.device) + 0.5) / n).expand(t.shape[0], n)
     u = u.contiguous()
@@ -53,7 +61,7 @@ def importance(t: torch.Tensor, weights: torch.Tensor, n: int, perturb: bool) ->
 
 
 def depth_guided(near: torch.Tensor, far: torch.Tensor, depth: torch.Tensor, n_surface: int,
-                 n_free: int, band: float, perturb: bool) -> torch.Tensor:
+                 n_free: int, band: float, perturb: torch.Generator | None) -> torch.Tensor:
     """Samples concentrated in [depth - band, depth + band], a few stratified over [near, far].
 
     Rays without a measured depth (depth <= 0) get all their samples stratified.
