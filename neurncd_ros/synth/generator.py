@@ -1,8 +1,8 @@
-"""Procedural synthetic RGB-D rooms with exact ground truth (issue 3, part 1).
+"""Procedural synthetic RGB-D rooms with exact ground truth.
 
 Each seed is a different furnished room holding instances of all 13 NYU-13
-classes (``synth_scene``); a hand-held camera walks a smooth path through it
-and every frame is ray cast on the CPU (``synth_render``) into colour, metric
+classes (``scene``); a hand-held camera walks a smooth path through it
+and every frame is ray cast on the CPU (``render``) into colour, metric
 z-depth (exact or Kinect-like), semantic and instance images. The semantic
 accuracy of the project is measured on these scenes, so the geometry is exact,
 textures are tied to 3D surface positions (multi-view consistent) and the

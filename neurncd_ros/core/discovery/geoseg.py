@@ -48,45 +48,28 @@ package. Steps, all vectorised over the image:
 
 Pixel sizes are given at ``reference_width`` (640, the package's PrimeSense
 resolution) and scaled with the image width (areas with its square). Defaults
-follow the package's ``primesense_config.yaml`` (normals window 13, min
-convexity mask threshold -0.0005 and opening 1, discontinuity ratio 0.05 with
-kernel 3 and closing 1, noise factor 10, min size 500; the max-distance map
-off, as that config's window 1 makes it), except the min-convexity test: the
-package compares neighbours 2 px away (window 5 at 640) against threshold 0.94
-(0.97 in its dynamic-reconfigure defaults). With a 13 px normal window, normals
-turn smoothly across a room corner, so neighbouring normals differ little and
-corners leaked (walls merged into one segment). Measured on synthetic scenes
-(seeds 0-3, 320x240), pixel-weighted segment purity (exact / Kinect-noise
-depth): window 5 + 0.97: 0.79 / 0.85; window 9 + 0.97: 0.89 / 0.87; window 9 +
-0.98: 0.94 / 0.92; window 9 + 0.985: 0.94 / 0.93 but more unassigned pixels.
-Only the 8 compass neighbours at the window border are compared (the package's
-step-size subsampling), which gave the same purity as all 80. The noise factor
-0.5 (chosen) keeps 0.94 / 0.90 while the share of valid pixels of the real
-Kinect fixture left unsegmented drops from 0.42 to 0.15 (factor 1: 0.84 / 0.91,
-0.05). Remaining impurity is mostly flush objects (doors, TVs, pictures on a
-wall), which geometry cannot cut.
+follow the package's ``primesense_config.yaml`` (normals window 13, convexity
+mask threshold -0.0005 and opening 1, discontinuity ratio 0.05 with kernel 3
+and closing 1, min size 500; the max-distance map off, as that config's window
+1 makes it), with three deliberate departures, each chosen on training or
+tuning seeds and measured by ``bench/discovery.py`` (``segment_purity*`` in
+bench/results/discovery.json):
 
-Issue 5 follow-up, measured on synthetic Kinect-noise frames (10 per seed, every
-4th of the first 40), chosen on training seeds 0-9, reported on held-out seeds
-10-14 (pixel-weighted purity / share of valid pixels segmented):
+- the min-convexity test compares the 8 compass neighbours 9 px away at 640
+  against 0.98 (the package: 2 px, 0.94): with a 13 px normal window normals
+  turn smoothly across a room corner, so near neighbours differ too little and
+  walls merged through corners;
+- the convexity noise factor 0.5 and the window centroids keep far Kinect depth
+  (centimetre quantisation at 4-5 m) from reading concave everywhere, which
+  had fragmented walls and left much of the real fixture unsegmented;
+- the reassignment checks normals (``reassign_normal_cos``), so a segment
+  cannot grow round a room corner through its edge band.
 
-- baseline (above): 0.877 / 0.92 train, 0.817 / 0.88 held-out. Most impurity
-  was not flush objects but walls merged with walls, floor and ceiling: the
-  step-by-step reassignment grew segments through room-corner edge bands;
-- reassignment normal check (``reassign_normal_cos`` 0.8; 0.7 / 0.85 / 0.95
-  gave 0.942 / 0.946 / 0.949 with a simulated cue, segmenting 0.905 / 0.89 / 0.867):
-  with raw points 0.946 / 0.80 train, 0.934 / 0.72 held-out; adding window
-  centroids in the convexity test (far fewer noise speckle edges, which had
-  fragmented walls): 0.916 / 0.90 train, 0.847 / 0.90 held-out (chosen: half as
-  many unsegmented pixels for 3 points; with exact depth the centroids cost some
-  room corners: seed 0 frames 0.98 -> 0.82);
-- embedding edges with the default backbone's logits (default_backbone.pt,
-  whose training rooms include seeds 0-59 at other frames): threshold 0.2 /
-  0.3 / 0.4 / 0.5 gave 0.972 / 0.968 / 0.964 / 0.956 train (segmented 0.889 /
-  0.893 / 0.896 / 0.898), a 5 px smoothing box changed < 0.01 (off: the
-  rendered embedding is smooth); 0.3 chosen: 0.968 / 0.89 train, 0.971 / 0.88
-  held-out. Entropy edges added 0.002-0.005 at 0.3-0.15 for fewer segmented
-  pixels, so they are off by default.
+Geometry cannot cut what is flush with a wall (doors, TVs, pictures, windows:
+exactly the novel classes), hence the appearance edges: the embedding's
+(``embedding_edges``) and the colour's (``colour_edges``; a door is "wall" to
+the backbone too). Entropy edges are off by default: they added little purity
+for fewer segmented pixels.
 """
 
 from __future__ import annotations

@@ -27,28 +27,16 @@ eta is not normalised by the data: dividing d by its mean neighbour distance
 (tried first) made the kernel depend on how many segments are in memory, and
 MCL fragmented into singletons at 1,000+ nodes.
 
-Defaults. MCL is sharply dependent on inflation and on the affinity's
-contrast: on a top-30 cosine graph of 5,000 noisy 38-d vectors in 12 groups it
-recovers the 12 groups at inflation 2 but breaks into near-singletons at 4 and
-12 (bench: 4,972 clusters at 12). The shipped defaults (exp affinity, eta 6,
-inflation 1.6, k 30, constant self-loop 1) were chosen on tuning seeds only
-(``seeds.TUNE``), never on the seeds the figures are reported on:
-1. descriptor level (``bench/discovery.py`` prints the grid; segments of 4
-   tuning scenes as the node cuts them, the default backbone's logits, label =
-   each segment's majority GT class, score = adjusted Rand index): exp/10/1.4
-   ARI 0.82 (13 clusters), exp/6/2.0 0.80, exp/6/1.6 0.76 (9.5 clusters),
-   exp/6/1.4 0.73; cosine at best 0.47 (r 4) and 0.43 at the paper's r 12. Real
-   logits separate classes less than a ground-truth stand-in, so a sharp kernel
-   (eta 6-10) wins over cosine;
-2. end to end (``bench/ncd.py --tune``: the whole Discoverer on rendered
-   embeddings of 8 tuning scenes, coordinate search on mean mIoU over all
-   classes, jointly with the labelling thresholds): inflation 1.6 (mIoU 67.4)
-   over 1.4 (65.6), 2.0 (66.7), 2.5 (66.4) and 1.2 (61.0); eta 6 over 3 (63.1)
-   and 10 (66.0). The paper's cosine at inflation 12 is reported beside
-   (``paper_mcl`` row: 63.9 against 72.2 on the test scenes).
-Segment ARI and the labeller's mIoU disagree in detail (the labeller also
-depends on how each cluster is named known or novel and on pixel weighting);
-the end-to-end score decides.
+Defaults. MCL depends sharply on the inflation and on the affinity's
+contrast: a correct MCL at the paper's inflation 12 on a top-30 graph of this
+project's segment descriptors returns near-singletons. The shipped defaults
+(exp affinity, eta 6, inflation 1.6, k 30, constant self-loop 1) were chosen
+on the tuning seeds only, first at the descriptor level (``bench/discovery.py``
+``tune_*``: adjusted Rand index of segment clusters against their majority
+ground-truth class) and then end to end (``bench/ncd.py --tune``, mean mIoU
+over all classes, jointly with the labelling thresholds), which decides where
+the two disagree; the paper's setting is the ``paper_mcl`` row of
+bench/results/ncd.json.
 """
 
 from __future__ import annotations
