@@ -163,8 +163,7 @@ def _by_section(values: Any) -> dict[str, dict[str, Any]]:
         if not isinstance(mapping, dict):
             raise ConfigError(f"{name}: section must be a mapping of parameters, got "
                               f"{mapping!r}")
-        children = [n.rsplit(".", 1)[1] for n in known if n.rsplit(".", 1)[0] == name
-                    and n.count(".") == name.count(".") + 1]
+        children = [n.rpartition(".")[2] for n in known if n.rpartition(".")[0] == name]
         own = {}
         for key, value in mapping.items():
             if key in children:
@@ -277,8 +276,7 @@ def to_yaml(cfg: Config, with_docs: bool = True) -> str:
     lines = ["/**:", "  ros__parameters:"]
     sch = schema()
     for sec, obj in cfg.sections.items():
-        values = to_dict(obj)
-        cls = section_class(sec)
+        values, cls = to_dict(obj), type(obj)
         pad = "  " * (sec.count(".") + 2)
         doc = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
         if with_docs and doc:
