@@ -35,6 +35,12 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
+    # A private temporary folder per session: pytest prunes old runs in the shared default
+    # (/tmp/pytest-of-<user>), which removes the files of another suite running at once.
+    if not config.option.basetemp:
+        import tempfile
+        config.option.basetemp = tempfile.mkdtemp(prefix="neurncd-pytest-")
+        config._neurncd_basetemp = config.option.basetemp
     config.addinivalue_line("markers", "slow: long test, run with --slow (make test-all)")
     config.addinivalue_line("markers", "ros: needs rclpy and local DDS")
 
@@ -48,3 +54,10 @@ def pytest_collection_modifyitems(config, items):
     if slow:
         config.hook.pytest_deselected(items=slow)
         items[:] = [item for item in items if "slow" not in item.keywords]
+
+
+def pytest_unconfigure(config):
+    import shutil
+    folder = getattr(config, "_neurncd_basetemp", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
