@@ -132,8 +132,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_train_backbone(args: argparse.Namespace) -> int:
-    from .core.backbone import train
-    return int(train.main(args) or 0)
+    from .tools import train_backbone
+    return int(train_backbone.main(args) or 0)
 
 
 def _set_threads(cfg: config_mod.Config) -> None:
@@ -255,11 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train-backbone", help="train the default RGB-D backbone on "
                        "synthetic scenes (9 known classes, novel masked out)")
-    try:
-        from .core.backbone import train
-        train.add_arguments(p)
-    except ImportError:  # pragma: no cover - partial installs
-        pass
+    from .tools import train_backbone
+    train_backbone.add_arguments(p)
     p.set_defaults(func=cmd_train_backbone)
 
     p = sub.add_parser("run", help="run backbone, mapper and discovery on a bag without "

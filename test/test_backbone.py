@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -215,27 +216,34 @@ def test_train_loop_learns_a_toy_task(tmp_path):
         sem = np.full((n, 48, 64), classes.CLASS_ID["wall"], np.uint16)
         sem[:, 24:] = classes.CLASS_ID["floor"]
         sem[:, :4] = classes.CLASS_ID["ceiling"]  # novel: ignored
-        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).astype(np.uint8)
+        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).repeat(3, -1)
         rgb = (rgb + rng.integers(0, 30, rgb.shape)).astype(np.uint8)
         depth = np.where(sem == classes.CLASS_ID["floor"], 1.5, 3.0).astype(np.float32)
         return {"rgb": rgb, "depth": depth, "semantic": sem}
 
-    rec = train.train_backbone(tmp_path / "w.pt", [0], [1], epochs=6, batch_size=4,
-                               data=(toy(16), toy(4)), num_threads=1, progress=False,
+    rec = train.train_backbone(tmp_path / "w.pt", toy(16), toy(4), {"trained_on": "toy"},
+                               epochs=6, batch_size=4, num_threads=1, progress=False,
                                command="test", crop=None)
     assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
     assert rec["val_known_miou"] > 60
-    assert (tmp_path / "w.json").is_file()
+    assert rec["trained_on"] == "toy" and rec["train_frames"] == 16
+    assert json.loads((tmp_path / "w.json").read_text())["trained_on"] == "toy"
     net = small.load_weights(str(tmp_path / "w.pt"))
     assert isinstance(net, small.SmallRGBDNet)
-    with pytest.raises(ValueError, match="overlap"):
-        train.train_backbone(tmp_path / "x.pt", [0, 1], [1], data=(toy(4), toy(4)),
-                             progress=False)
+    with pytest.raises(ValueError, match="validation data: semantic must be uint16"):
+        bad = toy(4)
+        bad["semantic"] = bad["semantic"].astype(np.int32)
+        train.train_backbone(tmp_path / "x.pt", toy(4), bad, progress=False)
+    # Fine-tuning from the weights just written keeps their record under "init".
+    rec = train.train_backbone(tmp_path / "f.pt", toy(8), toy(4), epochs=1, batch_size=4,
+                               num_threads=1, progress=False, command="test", crop=None,
+                               init=str(tmp_path / "w.pt"))
+    assert rec["init"]["trained_on"] == "toy" and rec["trained_on"] == "arrays"
     # Reproducible: the same options give the same weights, bit for bit.
     rng = np.random.default_rng(0)
     data = (toy(16), toy(4))
     for name in ("a.pt", "b.pt"):
-        train.train_backbone(tmp_path / name, [0], [1], epochs=2, batch_size=4, data=data,
+        train.train_backbone(tmp_path / name, *data, epochs=2, batch_size=4,
                              num_threads=1, progress=False, command="test", crop=(32, 48),
                              widths=(8, 8, 16, 16))
     a = small.load_weights(str(tmp_path / "a.pt")).state_dict()
@@ -246,18 +254,19 @@ def test_train_loop_learns_a_toy_task(tmp_path):
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
     """Cached frames are reused, but never across a change of the generator's code."""
     from neurncd_ros import synth
+    from neurncd_ros.synth import training
 
     cfg = synth.SynthConfig(width=32, height=24)
-    fresh = train.synth_frames(3, 2, tmp_path, cfg)
+    fresh = training.synth_frames(3, 2, tmp_path, cfg)
     files = list(tmp_path.glob("*.npz"))
-    assert len(files) == 1 and train.generator_hash() in files[0].name
+    assert len(files) == 1 and training.generator_hash() in files[0].name
     # The cache is read: a doctored file under the same key is what comes back.
     np.savez(files[0], rgb=np.zeros_like(fresh["rgb"]), depth=fresh["depth"],
              semantic=fresh["semantic"])
-    assert train.synth_frames(3, 2, tmp_path, cfg)["rgb"].max() == 0
+    assert training.synth_frames(3, 2, tmp_path, cfg)["rgb"].max() == 0
     # Another generator version does not see that file: the frames are rendered again.
-    monkeypatch.setattr(train, "generator_hash", lambda: "0123456789")
-    again = train.synth_frames(3, 2, tmp_path, cfg)
+    monkeypatch.setattr(training, "generator_hash", lambda: "0123456789")
+    again = training.synth_frames(3, 2, tmp_path, cfg)
     assert np.array_equal(again["rgb"], fresh["rgb"])
     assert len(list(tmp_path.glob("*.npz"))) == 2
 
@@ -265,11 +274,13 @@ def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
 def test_record_command_reproduces_the_options():
     import argparse
 
+    from neurncd_ros.tools import train_backbone
+
     p = argparse.ArgumentParser()
-    train.add_arguments(p)
+    train_backbone.add_arguments(p)
     args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8", "16",
                          "16"])
-    line = train.command_line(args)
+    line = train_backbone.command_line(args)
     assert line.startswith("neurncd train-backbone ")
     again = p.parse_args(line.split()[2:])
 
