@@ -37,7 +37,7 @@ from ..frame import Frame
 from ..params import build, param
 from ..sync import nearest, pose_at
 
-KINDS = ("auto", "replica", "tum", "nyu", "posetxt", "redwood")
+KINDS = ("auto", "replica", "tum", "nyu", "nyu_labelled", "posetxt", "redwood")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
 
@@ -329,9 +329,46 @@ def _as_lookup(id_map: Any) -> np.ndarray | None:
     return lut
 
 
+NYU13_MARKER = "semantic_nyu13.txt"
+"""Written by :func:`write_replica`: its ``semantic_class/`` images already hold NYU-13 ids."""
+
+
+def _replica_lookup(folder: Path, id_map: Any, semantic_ids: str,
+                    class_info: str | Path | None) -> np.ndarray | None:
+    """How a Replica folder's ``semantic_class`` ids become NYU-13 (None: they already are)."""
+    from . import replica_classes as rc
+
+    if semantic_ids not in ("auto", "nyu13", "replica"):
+        raise FormatError(f"semantic_ids must be auto, nyu13 or replica, got {semantic_ids!r}")
+    if id_map is not None:
+        return _as_lookup(id_map)
+    if semantic_ids == "nyu13" or (semantic_ids == "auto" and (folder / NYU13_MARKER).is_file()):
+        return None
+    info = Path(class_info) if class_info else rc.find_class_info(folder)
+    if info is None:
+        raise FormatError(f"{folder}: semantic_class/ holds Replica class ids, but no "
+                          "info_semantic.json was found beside it or in semantic_info/<scene>/ "
+                          "above it; pass class_info=<path to the scene's info_semantic.json>, "
+                          "or semantic_ids=nyu13 if the images already hold NYU-13 ids")
+    try:
+        return rc.lookup_table(info)
+    except rc.ReplicaClassError as err:
+        raise FormatError(str(err)) from None
+
+
 def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
-                 id_map: Any = None) -> Iterator[Frame]:
-    """Semantic-NeRF Replica layout -> Frames (semantic remapped by ``id_map`` if given)."""
+                 id_map: Any = None, semantic_ids: str = "auto",
+                 class_info: str | Path | None = None) -> Iterator[Frame]:
+    """Semantic-NeRF Replica layout -> Frames with NYU-13 ground truth.
+
+    ``semantic_class/`` ids become NYU-13 by ``id_map`` if given, else by the
+    shipped Replica -> NYU-13 mapping (:mod:`.replica_classes`) with the scene's
+    ``info_semantic.json`` (found, or ``class_info``); folders written by
+    :func:`write_replica` hold NYU-13 already (``semantic_ids="nyu13"`` says so
+    for other folders).
+    """
+    from . import replica_classes as rc
+
     folder = Path(folder)
     fmt, scale, intr_vals = _resolve(cfg, "replica")
     poses = read_matrix_rows(folder / "traj_w_c.txt")
@@ -346,7 +383,7 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
                           "rgb images")
     stamps = _replica_stamps(folder, len(poses), cfg)
     cam_file = folder / "intrinsics.json"
-    lut = _as_lookup(id_map)
+    lut = _replica_lookup(folder, id_map, semantic_ids, class_info) if sems else None
     for i in _subsample(sorted(rgbs), cfg):
         if i not in depths:
             raise FormatError(f"{folder}: depth/depth_{i}.png missing")
@@ -363,7 +400,10 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
             intr = Intrinsics.from_hfov(w, h, cfg.hfov_deg)
         sem = read_labels(sems[i]) if i in sems else None
         if sem is not None and lut is not None:
-            sem = lut[sem]
+            try:
+                sem = rc.to_nyu13(sem, lut, str(sems[i]))
+            except rc.ReplicaClassError as err:
+                raise FormatError(str(err)) from None
         inst = read_labels(insts[i]) if i in insts else None
         yield _make_frame(stamps[i], rgb, depth, poses[i], intr, f"{folder} frame {i}",
                           sem, inst)
@@ -437,6 +477,7 @@ def write_replica(folder: str | Path, frames: Iterable[Frame], hfov_deg: float =
                                   "Replica layout holds one camera")
             cam = fr.intrinsics
     (folder / "traj_w_c.txt").write_text("\n".join(rows) + "\n")
+    (folder / NYU13_MARKER).write_text("semantic_class/ holds NYU-13 ids (neurncd_ros)\n")
     (folder / "timestamps.txt").write_text("\n".join(stamps) + "\n")
     if cam is not None:
         (folder / "intrinsics.json").write_text(json.dumps(dataclasses.asdict(cam)))
@@ -689,21 +730,40 @@ def detect_kind(folder: str | Path) -> str:
 
 def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
                 trajectory: str | Path | None = None, with_poses: bool = True,
+                labelled: str | Path | None = None, class_mapping: str | Path | None = None,
+                semantic_ids: str = "auto", class_info: str | Path | None = None,
                 **opts: Any) -> Iterator[Frame]:
     """Frames of a dataset folder; ``opts`` are :class:`FolderConfig` fields.
 
     ``id_map`` remaps Replica semantic ids; ``trajectory`` overrides the TUM
     pose file; ``with_poses=False`` lets TUM-style folders without a trajectory
     (NYUv2 raw, kind "nyu", never has one) yield frames with pose None, for the
-    odometry. Unknown options raise ConfigError (a ValueError) naming them.
+    odometry. ``nyu_labelled`` (a ``.mat`` file, detected by its suffix) reads
+    NYUv2's labelled set (:mod:`.nyu`; ``class_mapping`` = classMapping40.mat if
+    not beside it); ``labelled`` attaches to a NYUv2 raw sequence the labelled
+    frames taken from it. Unknown options raise ConfigError (a ValueError) naming them.
     """
     if kind not in KINDS:
         raise FormatError(f"unknown folder kind {kind!r}; known: {', '.join(KINDS)}")
     cfg = build(FolderConfig, opts)
     path = Path(path)
     if not path.exists():
-        raise FormatError(f"{path}: no such folder")
+        raise FormatError(f"{path}: no such file or folder")
+    if kind == "nyu_labelled" or (kind == "auto" and path.is_file() and
+                                  path.suffix.lower() == ".mat"):
+        from .nyu import read_labelled
+        return read_labelled(path, class_mapping, stride=cfg.stride,
+                             max_frames=cfg.max_frames, fps=cfg.fps,
+                             start_stamp_ns=cfg.start_stamp_ns)
     kind = detect_kind(path) if kind == "auto" else kind
+    if labelled is not None:
+        if kind != "nyu":
+            raise FormatError(f"{path}: labelled applies to NYUv2 raw sequences, this is "
+                              f"{kind!r}")
+        from .nyu import raw_labels
+        labels = raw_labels(labelled, class_mapping)
+        frames = read_tum(path, cfg, trajectory, with_poses, kind="nyu")
+        return _attach_nyu_labels(frames, labels, path)
     if id_map is not None and kind != "replica":
         raise FormatError(f"{path}: id_map applies to Replica folders, this is {kind!r}")
     if trajectory is not None and kind not in ("tum", "nyu"):
@@ -714,12 +774,39 @@ def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
                               "them from its images (convert --poses odometry)")
         return read_tum(path, cfg, trajectory, with_poses, kind="nyu")
     if kind == "replica":
-        return read_replica(path, cfg, id_map)
+        return read_replica(path, cfg, id_map, semantic_ids, class_info)
     if kind == "tum":
         return read_tum(path, cfg, trajectory, with_poses)
     if kind == "posetxt":
         return read_posetxt(path, cfg)
     return read_redwood(path, cfg)
+
+
+def _attach_nyu_labels(frames: Iterator[Frame], labels: dict[str, np.ndarray], where: Path
+                       ) -> Iterator[Frame]:
+    """Give each raw frame whose colour file is in the labelled set that frame's labels.
+
+    Raw NYUv2 files are named by their stamp (``r-<seconds>-<n>.ppm``), so the
+    labelled frames are matched to raw frames by stamp."""
+    import dataclasses as dc
+
+    by_stamp = {}
+    for name, sem in labels.items():
+        t = _stamp_of(name[2:]) if name.startswith("r-") else None
+        if t is not None:
+            by_stamp[t] = sem
+    have = {t for t, _ in _tum_list(where, "rgb.txt", "rgb", ("r-",))}
+    if not have & set(by_stamp):
+        raise FormatError(f"{where}: none of its colour files is in the labelled set")
+    for fr in frames:
+        sem = by_stamp.get(fr.stamp_ns)
+        if sem is not None:
+            if sem.shape != fr.depth.shape:
+                raise FormatError(f"{where}: labelled frame at stamp {fr.stamp_ns} is "
+                                  f"{sem.shape[1]}x{sem.shape[0]}, the raw frame "
+                                  f"{fr.depth.shape[1]}x{fr.depth.shape[0]}")
+            fr = dc.replace(fr, semantic=sem)
+        yield fr
 
 
 def is_bag(path: str | Path) -> bool:
