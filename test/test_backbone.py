@@ -304,3 +304,46 @@ def test_esanet_checkpoint_loads_through_backbone(tmp_path):
     rgb, depth = _rgbd(240, 320)
     out = b.predict(rgb, depth)
     assert out.shape == (240, 320, 37) and out.dtype == np.float32 and np.isfinite(out).all()
+
+
+def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
+    """`neurncd train-backbone --data` trains on bags with ground truth, splits off
+    validation, records what it saw, and the embedding path loads the weights."""
+    import json
+
+    from neurncd_ros import cli, synth
+    from neurncd_ros.core.data import bag
+
+    cfg = synth.SynthConfig(width=64, height=48)
+    paths = []
+    for seed in (3, 4):
+        paths.append(tmp_path / f"s{seed}.mcap")
+        bag.write_bag(paths[-1], synth.generate(seed, 6, cfg))
+    out = tmp_path / "mine.pt"
+    common = ["train-backbone", "--out", str(out), "--size", "64", "48", "--epochs", "2",
+              "--batch-size", "4", "--crop", "32", "48", "--widths", "8", "8", "16", "16",
+              "--val-every", "0"]
+    assert cli.main(common + ["--data", *map(str, paths)]) == 0
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert rec["trained_on"] == "data" and rec["val_split"] == "frames"
+    assert rec["train_files"] == [str(p) for p in paths] and rec["train_frames"] == 10
+    assert rec["val_frames"] == 2 and rec["train_size"] == [64, 48]
+    assert "--data" in rec["command"] and "--train-seeds" not in rec["command"]
+    assert "validation 2 frames of" in capsys.readouterr().out
+    b = bb.load_backbone(bb.BackboneConfig(checkpoint=str(out), num_threads=1))
+    frame = next(iter(synth.generate(5, 1, cfg)))
+    assert b.predict(frame.rgb, frame.depth).shape == (48, 64, 9)
+    # By files: the last file validates.
+    assert cli.main(common + ["--data", *map(str, paths), "--val-split", "files"]) == 0
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert rec["val_files"] == [str(paths[1])] and rec["train_frames"] == 6
+    # A bag without ground truth is refused by name.
+    bare = tmp_path / "bare.mcap"
+    bag.write_bag(bare, (_without_ground_truth(f) for f in synth.generate(6, 2, cfg)))
+    assert cli.main(common + ["--data", str(bare), str(paths[0])]) == 1
+    assert "bare.mcap: no frame with semantic ground truth" in capsys.readouterr().err
+
+
+def _without_ground_truth(frame):
+    import dataclasses
+    return dataclasses.replace(frame, semantic=None, instance=None)
