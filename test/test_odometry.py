@@ -186,3 +186,21 @@ def test_cli_convert_poses_odometry(walk, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "6 frames tracked, 0 lost" in text
     assert len(list(bag.FrameReader(tmp_path / "o.mcap"))) == 6
+
+
+def test_icl_fixture_wide_baselines_are_reported_and_the_overlapping_pair_tracks():
+    """ICL-NUIM's five frames turn 49, 91, 79 and 20 degrees between neighbours (two
+    pairs share no view at all): those are losses, said so, and the last pair
+    (20 degrees, 25 cm) is tracked."""
+    frames = list(formats.read_folder(REAL / "icl_livingroom", "posetxt", preset="icl"))
+    cfg = OdometryConfig(max_step_m=2.0, max_step_deg=90.0, new_segment_after=1)
+    odo = RGBDOdometry(cfg)
+    res = _track_all(odo, frames)
+    assert [r.status for r in res] == ["ok", "new_segment", "new_segment", "new_segment",
+                                       "ok"]
+    assert all("lost" in r.reason for r in res[1:4])
+    assert res[4].segment == res[3].segment == 3
+    est = invert_pose(res[3].pose) @ res[4].pose
+    true = invert_pose(frames[3].pose) @ frames[4].pose
+    assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.10
+    assert odo_mod.rotation_deg(invert_pose(true) @ est) < 3.0

@@ -137,7 +137,6 @@ class _View:
     camera: tuple              # the caller's intrinsics, to notice a change of camera
     full_rgb: np.ndarray | None = None   # for features, only kept while needed
     full_depth: np.ndarray | None = None
-    full_flip: tuple[bool, bool] = (False, False)
     full_K: np.ndarray | None = None
     features: tuple | None = None  # (keypoints (M,2) px, descriptors, depth at keypoints)
 
@@ -262,7 +261,7 @@ class RGBDOdometry:
         pts = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
         return _View(int(stamp_ns), gray, d, K, fr, pts,
                      (intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height),
-                     full_rgb=rgb, full_depth=depth, full_flip=flip, full_K=full.K)
+                     full_rgb=rgb, full_depth=depth, full_K=full.K)
 
     # ------------------------------------------------------------------ measures
     def _check(self, ref: _View, cur: _View, T_cur_ref: np.ndarray) -> tuple[float, int, float]:
@@ -312,6 +311,7 @@ class RGBDOdometry:
         return Rt if T0 is None else Rt @ T0
 
     def _features(self, view: _View) -> tuple:
+        """(keypoints, descriptors, depth at keypoints, K) of ``view`` at feature_width."""
         if view.features is None:
             rgb, depth, K = view.full_rgb, view.full_depth, view.full_K
             h, w = depth.shape
@@ -401,7 +401,9 @@ class RGBDOdometry:
     def _add_keyframe(self, view: _View, pose: np.ndarray) -> _Keyframe:
         kf = _Keyframe(view, pose.copy(), self._segment, self._kf_count)
         self._kf_count += 1
-        view.full_rgb = view.full_rgb  # kept: features may be asked for relocalisation
+        if self._orb is not None:
+            self._features(view)  # for relocalisation later; the full images are not kept
+        view.full_rgb = view.full_depth = None
         self.keyframes.append(kf)
         if len(self.keyframes) > self.cfg.max_keyframes:
             dropped = self.keyframes.pop(0)

@@ -495,7 +495,8 @@ class FrameReader:
                 if tp.pose not in types:
                     raise BagError(f"{path}: no pose topic {tp.pose!r} (topics: "
                                    f"{sorted(types)}); for a /tf pose pass tf_parent and "
-                                   "tf_child")
+                                   "tf_child; a bag without poses gets them from "
+                                   "`neurncd convert --poses odometry`")
                 self.pose_source = tp.pose
             else:
                 if tp.tf not in types and tp.tf_static not in types:
