@@ -74,6 +74,9 @@ class OdometryConfig:
     min_fitness: float = param(0.5, "an estimate is trusted when at least this share of the "
                                "keyframe points seen in the new frame agree with its depth",
                                lo=0.0, hi=1.0)
+    good_fitness: float = param(0.95, "below this fitness the dense estimate is cross-checked "
+                                "against ORB features + PnP and the better one kept (good "
+                                "steps agree at 0.96-0.99)", lo=0.0, hi=1.0)
     min_inliers: int = param(300, "... and at least this many agree (at the working "
                              "resolution, every second pixel)", lo=1, hi=1_000_000)
     max_step_m: float = param(0.3, "a step longer than this between consecutive tracked "
@@ -369,33 +372,43 @@ class RGBDOdometry:
         T[:3, 3] = tvec[:, 0]
         return T, n_inl
 
-    def _estimate(self, ref: _View, cur: _View, dense_first: bool = True
-                  ) -> tuple[np.ndarray | None, float, int, float, str]:
-        """Best trusted T_cur_ref: dense, else features + dense refinement.
+    def _estimate(self, ref: _View, cur: _View) -> tuple[np.ndarray | None, float, int, float,
+                                                       str]:
+        """Best trusted T_cur_ref: (T or None, fitness, inliers, overlap, how).
 
-        Returns (T or None, fitness, inliers, overlap, how)."""
-        best = (None, 0.0, 0, 0.0, "dense odometry did not converge")
-        if dense_first:
-            T = self._dense(ref, cur)
-            if T is not None:
-                fit, inl, ov = self._check(ref, cur, T)
-                if self._good(fit, inl):
-                    return T, fit, inl, ov, "dense"
-                best = (None, fit, inl, ov, f"dense fitness {fit:.2f} with {inl} inliers")
+        Dense odometry first; when its fitness is below ``good_fitness`` (a wrong
+        local minimum, e.g. a long step sliding along a wall), ORB features +
+        PnP-RANSAC and their dense refinement are tried too, and the candidate
+        whose points agree best with the new depth wins."""
+        cands: list[tuple[np.ndarray, float, int, float, str]] = []
+        notes = []
+        T = self._dense(ref, cur)
+        if T is None:
+            notes.append("dense odometry did not converge")
+        else:
+            fit, inl, ov = self._check(ref, cur, T)
+            if fit >= self.cfg.good_fitness and inl >= self.cfg.min_inliers:
+                return T, fit, inl, ov, "dense"
+            cands.append((T, fit, inl, ov, "dense"))
+            notes.append(f"dense fitness {fit:.2f} with {inl} inliers")
         T0, n_feat = self._feature_pose(ref, cur)
         if T0 is None:
-            return best[:4] + (best[4] + f"; features: {n_feat} PnP inliers",)
-        cands = [(T0, "features")]
-        Tr = self._dense(ref, cur, T0)
-        if Tr is not None:
-            cands.insert(0, (Tr, "features + dense"))
-        for T, how in cands:
-            fit, inl, ov = self._check(ref, cur, T)
-            if self._good(fit, inl):
-                return T, fit, inl, ov, how
-            if fit > best[1]:
-                best = (None, fit, inl, ov, f"{how} fitness {fit:.2f} with {inl} inliers")
-        return best
+            notes.append(f"features: {n_feat} PnP inliers")
+        else:
+            Tr = self._dense(ref, cur, T0)
+            for Tc, how in ((T0, "features"), (Tr, "features + dense")):
+                if Tc is not None:
+                    fit, inl, ov = self._check(ref, cur, Tc)
+                    cands.append((Tc, fit, inl, ov, how))
+                    notes.append(f"{how} fitness {fit:.2f} with {inl} inliers")
+        if not cands:
+            return None, 0.0, 0, 0.0, "; ".join(notes)
+        best = max(cands, key=lambda c: (c[1], c[2]))
+        if self._good(best[1], best[2]):
+            how = best[4] if best[4] == "dense" and len(cands) == 1 else \
+                f"{best[4]} (best of: {'; '.join(notes)})"
+            return best[:4] + (how,)
+        return (None,) + best[1:4] + ("; ".join(notes),)
 
     # ------------------------------------------------------------------ keyframes
     def _add_keyframe(self, view: _View, pose: np.ndarray) -> _Keyframe:
