@@ -90,6 +90,8 @@ def test_labelled_mat_converts_to_a_bag_and_a_replica_folder(tmp_path):
     assert formats.convert(mat, tmp_path / "rep", to="replica") == 3
     again = list(formats.read_folder(tmp_path / "rep"))  # NYU-13 already: kept as is
     assert np.array_equal(again[2].semantic, back[2].semantic)
+    with pytest.raises(formats.FormatError, match="single views"):
+        formats.convert(mat, tmp_path / "x.mcap", poses="odometry")
 
 
 def test_bad_nyu_files_are_named(tmp_path):

@@ -845,6 +845,9 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
                                                     tf_child=tf_child,
                                                     with_poses=not estimate)
     else:
+        if estimate and (kind == "nyu_labelled" or Path(src).suffix.lower() == ".mat"):
+            raise FormatError(f"{src}: the labelled frames are single views of many scenes; "
+                              "odometry needs a sequence (convert the raw sequence instead)")
         frames = read_folder(src, kind, with_poses=not estimate, **opts)
     results: list = []
     if estimate:
