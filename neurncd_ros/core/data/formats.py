@@ -15,6 +15,12 @@ Folder layouts understood by :func:`read_folder`:
   qz qw`` a line), e.g. slambook's NYU dining room and ICL-NUIM (``preset="icl"``);
 - ``redwood``: ``color/``, ``depth/``, ``trajectory.log`` (Open3D log) and
   ``camera_primesense.json`` (column-major K).
+- ``nyu``: a NYUv2 raw scene folder (``r-*.ppm``, ``d-*.pgm``, no poses: read
+  with ``with_poses=False`` for the odometry; ``labelled=`` attaches the
+  labelled frames taken from it);
+- ``nyu_labelled``: NYUv2's labelled ``.mat`` (:mod:`.nyu`).
+
+Replica ``semantic_class/`` ids become NYU-13 through :mod:`.replica_classes`.
 
 Depth decoding, scales and intrinsics are parameters (:class:`FolderConfig`);
 ``preset`` fills in the documented defaults of a dataset.
