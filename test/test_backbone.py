@@ -347,3 +347,34 @@ def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
 def _without_ground_truth(frame):
     import dataclasses
     return dataclasses.replace(frame, semantic=None, instance=None)
+
+
+def test_esanet_fine_tunes_on_known_classes_and_loads_as_esanet(tmp_path):
+    """--arch esanet: a user's ESANet checkpoint, trained on the 9 known classes (its
+    NYU-40 logits pooled per class), saved as an ESANet checkpoint the backbone loads."""
+    from neurncd_ros.core.backbone import esanet
+
+    torch.manual_seed(0)
+    start = tmp_path / "user_esanet.pth"
+    torch.save({"state_dict": esanet.ESANet(40).state_dict()}, start)
+    rng = np.random.default_rng(0)
+    sem = np.full((4, 64, 64), classes.CLASS_ID["wall"], np.uint16)
+    sem[:, 32:] = classes.CLASS_ID["floor"]
+    data = {"rgb": rng.integers(0, 256, (4, 64, 64, 3), dtype=np.uint8),
+            "depth": np.full((4, 64, 64), 2.0, np.float32), "semantic": sem}
+    with pytest.raises(ValueError, match="divisible by 32"):
+        train.train_backbone(tmp_path / "x.pth", data, data, arch="esanet", init=str(start),
+                             crop=(48, 48), progress=False)
+    out = tmp_path / "mine.pth"
+    rec = train.train_backbone(out, data, data, {"trained_on": "toy"}, epochs=1,
+                               batch_size=2, crop=(64, 64), num_threads=1, progress=False,
+                               command="test", arch="esanet", init=str(start))
+    assert rec["arch"] == "ESANet-R34-NBt1D" and rec["steps"] == 2
+    assert rec["init"]["weights"] == str(start)
+    b = bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint=str(out),
+                                           input_width=64, input_height=64, num_threads=1))
+    assert b.channels == 40
+    moved = any(not torch.equal(a, c) for a, c in zip(
+        esanet.load_esanet_checkpoint(start).state_dict().values(),
+        b.net.state_dict().values()))
+    assert moved

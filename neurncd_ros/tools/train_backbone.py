@@ -93,7 +93,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-every", type=int, default=1000,
                         help="validate every this many steps, for the record (0 = end only)")
     parser.add_argument("--init", default=None,
-                        help="continue training from this weight file (fine-tuning)")
+                        help="continue training from this weight file (fine-tuning); with "
+                        "--arch esanet the ESANet checkpoint to fine-tune")
+    parser.add_argument("--arch", choices=("default", "esanet"), default="default",
+                        help="default: the small RGB-D net; esanet: fine-tune ESANet "
+                        "R34-NBt1D from --init on the known classes (sizes multiples of 32, "
+                        "e.g. --size 320 256 --crop 192 256; slow on a CPU)")
+    parser.add_argument("--esanet-dataset", choices=("nyuv2", "sunrgbd"), default="nyuv2",
+                        help="with --arch esanet: the checkpoint's classes and depth statistics")
     parser.add_argument("--cache", default=str(DEFAULT_CACHE),
                         help="folder for cached synthetic frames (npz)")
     parser.add_argument("--data", nargs="+", default=None, metavar="BAG_OR_FOLDER",
@@ -112,12 +119,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 _SYNTH_ONLY = ("train_seeds", "val_seeds", "frames", "val_frames", "fps", "workers", "cache")
 _DATA_ONLY = ("val_data", "val_split", "val_fraction", "size")
+_ESANET_ONLY = ("esanet_dataset",)
 
 
 def command_line(args: argparse.Namespace) -> str:
     """The ``neurncd train-backbone`` command that reproduces a run (every option spelt out)."""
     parts = ["neurncd", "train-backbone"]
     unused = _SYNTH_ONLY if getattr(args, "data", None) else _DATA_ONLY
+    if getattr(args, "arch", "default") != "esanet":
+        unused = unused + _ESANET_ONLY + ("arch",)
     for key, value in sorted(vars(args).items()):
         if key in ("func", "command", "config", "set") or key in unused or value is None:
             continue
@@ -224,7 +234,8 @@ def main(args: argparse.Namespace) -> int:
                          num_threads=args.threads, max_minutes=args.max_minutes,
                          crop=tuple(args.crop), init=args.init, widths=tuple(args.widths),
                          val_every=args.val_every, command=command_line(args),
-                         data_seconds=time.time() - t0)
+                         data_seconds=time.time() - t0, arch=args.arch,
+                         esanet_dataset=args.esanet_dataset)
     return 0
 
 

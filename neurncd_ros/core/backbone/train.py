@@ -213,6 +213,47 @@ def class_weights(targets: np.ndarray, power: float = 0.5, cap: float = 5.0) -> 
     return np.minimum(w, cap).astype(np.float32)
 
 
+class KnownClassESANet(torch.nn.Module):
+    """ESANet R34-NBt1D trained on the known classes: its NYU-40 logits pooled
+    (log-sum-exp over the channels of each class) into the 9 known NYU-13 classes.
+
+    The loss sees only known classes, as for the default net; the network keeps
+    its own head, so the result is an ordinary ESANet checkpoint
+    (``{'state_dict': ...}``) that ``backbone.kind: esanet`` loads unchanged.
+    """
+
+    def __init__(self, net: torch.nn.Module, dataset: str = "nyuv2",
+                 depth_mode: str = "raw") -> None:
+        from .backbone import esanet_channel_to_id
+
+        super().__init__()
+        self.net, self.dataset, self.depth_mode = net, dataset, depth_mode
+        ids = esanet_channel_to_id(dataset)
+        if ids.size != getattr(net, "num_classes", ids.size):
+            raise ValueError(f"ESANet has {net.num_classes} classes but esanet_dataset "
+                             f"{dataset!r} has {ids.size}")
+        for k, cid in enumerate(classes.KNOWN_IDS):
+            self.register_buffer(f"group{k}", torch.from_numpy(np.flatnonzero(ids == cid)))
+
+    def predict_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        from . import esanet
+
+        out = self.net(esanet.preprocess_rgb(rgb),
+                       esanet.preprocess_depth(depth, self.dataset, self.depth_mode))
+        if isinstance(out, (tuple, list)):  # training mode: side outputs follow
+            out = out[0]
+        return torch.stack([torch.logsumexp(out[:, getattr(self, f"group{k}")], dim=1)
+                            for k in range(classes.NUM_KNOWN)], dim=1)
+
+
+def _esanet_from(path: str, dataset: str, depth_mode: str) -> KnownClassESANet:
+    from . import esanet
+
+    from .backbone import esanet_channel_to_id
+    net = esanet.load_esanet_checkpoint(path, num_classes=len(esanet_channel_to_id(dataset)))
+    return KnownClassESANet(net, dataset, depth_mode)
+
+
 def loss_terms(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
                ) -> dict[str, torch.Tensor]:
     """The training objective as named terms, summed by :func:`train_step`.
@@ -262,7 +303,8 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                    crop: tuple[int, int] | None = (192, 256), init: str | None = None,
                    command: str | None = None,
                    widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
-                   val_every: int = 0, data_seconds: float = 0.0) -> dict:
+                   val_every: int = 0, data_seconds: float = 0.0, arch: str = "default",
+                   esanet_dataset: str = "nyuv2", esanet_depth_mode: str = "raw") -> dict:
     """Train the default net on ``train``, save weights to ``out_path`` and the record
     next to it (``<out_path stem>.json``); returns the record.
 
@@ -275,7 +317,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     steps and logs the score in the record's ``val_curve`` (for the record only:
     the final weights are always those of the last step, no checkpoint is
     selected on the validation data). The reported validation scores are those
-    of the saved fp16 weights.
+    of the saved fp16 weights. ``arch="esanet"`` fine-tunes the ESANet checkpoint
+    ``init`` instead (:class:`KnownClassESANet`; frame sizes multiples of 32) and
+    writes an ESANet checkpoint.
     """
     from tqdm import tqdm
 
@@ -283,6 +327,16 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         raise ValueError("epochs and batch_size must be >= 1")
     n = check_arrays(train, "training data")
     check_arrays(val, "validation data")
+    if arch not in ("default", "esanet"):
+        raise ValueError(f"arch must be 'default' or 'esanet', got {arch!r}")
+    if arch == "esanet":
+        if not init:
+            raise ValueError("arch esanet fine-tunes a checkpoint: give init=<ESANet .pth>")
+        sizes = [train["rgb"].shape[1:3], val["rgb"].shape[1:3]] + \
+            ([tuple(crop)] if crop is not None else [])
+        if any(h % 32 or w % 32 for h, w in sizes):
+            raise ValueError(f"ESANet needs sizes divisible by 32; frames/crop are {sizes} "
+                             "(e.g. --size 320 256)")
     t_start = time.time()
     if num_threads > 0:
         torch.set_num_threads(num_threads)
@@ -299,8 +353,12 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     steps_per_epoch = max(n // batch_size, 1)
     total_steps = steps_per_epoch * epochs
 
-    model = small.SmallRGBDNet(widths=tuple(widths))
-    init_record = _init_from(model, init) if init else None
+    if arch == "esanet":
+        model = _esanet_from(init, esanet_dataset, esanet_depth_mode)
+        init_record = {"weights": str(init), "esanet_dataset": esanet_dataset}
+    else:
+        model = small.SmallRGBDNet(widths=tuple(widths))
+        init_record = _init_from(model, init) if init else None
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     warmup = max(min(100, total_steps // 20), 1)
 
@@ -360,16 +418,22 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     train_time = time.time() - t_train
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    small.save_weights(model, str(out_path))
-    shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
+    if arch == "esanet":
+        torch.save({"state_dict": model.net.state_dict()}, out_path)
+        shipped = _esanet_from(str(out_path), esanet_dataset, esanet_depth_mode)
+    else:
+        small.save_weights(model, str(out_path))
+        shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
     val_scores = evaluate(shipped, val, progress=progress)
     source = dict(source) if source else {"trained_on": "arrays"}
     record = {
         "command": command if command is not None else " ".join(sys.argv),
-        "arch": "SmallRGBDNet", "arch_version": small.ARCH_VERSION,
-        "widths": list(model.widths),
-        "parameters": small.count_parameters(model),
-        "gflops_320x240": round(small.count_flops(model) / 1e9, 3),
+        **({"arch": "SmallRGBDNet", "arch_version": small.ARCH_VERSION,
+            "widths": list(model.widths),
+            "parameters": small.count_parameters(model),
+            "gflops_320x240": round(small.count_flops(model) / 1e9, 3)} if arch == "default"
+           else {"arch": "ESANet-R34-NBt1D", "esanet_dataset": esanet_dataset,
+                 "parameters": small.count_parameters(model)}),
         **{k: v for k, v in source.items() if k != "synth_config"},
         "train_frames": int(n), "train_size": [int(train["rgb"].shape[2]),
                                                int(train["rgb"].shape[1])],
@@ -392,7 +456,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     }
     if "synth_config" in source:
         record["synth_config"] = source["synth_config"]
-    small.save_weights(model, str(out_path), extra={"val_known_miou": record["val_known_miou"]})
+    if arch == "default":
+        small.save_weights(model, str(out_path),
+                           extra={"val_known_miou": record["val_known_miou"]})
     record["weights_bytes"] = out_path.stat().st_size
     out_path.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     if progress:
