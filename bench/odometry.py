@@ -21,7 +21,8 @@ Figures (bench/results/odometry.json; trajectory errors measured with evo):
 - ``odometry_ms_per_frame_320x240``: median ``track()`` time on one core
   (OpenCV and torch at 1 thread), over the synthetic runs;
 - ``miou_all_true_poses`` / ``miou_all_odometry``: the whole pipeline
-  (``pipeline.run_frames``: backbone, Embedding-NeRF, discovery) on the same
+  (``engine.offline.run_frames``, as ``neurncd run``: backbone, Embedding-NeRF,
+  discovery) on the same
   synthetic bags (3 test seeds, ``--ncd-frames`` frames), once with their true
   poses and once with the pose topic ignored and poses estimated
   (``FrameReader(with_poses=False)`` -> ``with_odometry``), mean over seeds;
@@ -52,8 +53,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros import config, synth  # noqa: E402
-from neurncd_ros.core import pipeline  # noqa: E402
 from neurncd_ros.core.data import bag, formats  # noqa: E402
+from neurncd_ros.core.engine import offline  # noqa: E402
 from neurncd_ros.core.odometry import OdometryConfig, RGBDOdometry, with_odometry  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
@@ -193,7 +194,7 @@ def whole_system(n_frames: int) -> dict:
                     frames = with_odometry(bag.FrameReader(path, cfg.topics, with_poses=False),
                                            cfg.odometry, results)
                 t0 = time.perf_counter()
-                out = pipeline.run_frames(frames, cfg, Path(tmp) / f"run_{seed}_{mode}",
+                out = offline.run_frames(frames, cfg, Path(tmp) / f"run_{seed}_{mode}",
                                           total=n_frames, progress=False)
                 row[f"miou_all_{mode}"] = out["metrics"]["miou_all"]
                 row[f"miou_known_{mode}"] = out["metrics"]["miou_known"]

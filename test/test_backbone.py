@@ -222,7 +222,7 @@ def test_train_loop_learns_a_toy_task(tmp_path):
         return {"rgb": rgb, "depth": depth, "semantic": sem}
 
     rec = train.train_backbone(tmp_path / "w.pt", toy(16), toy(4), {"trained_on": "toy"},
-                               epochs=6, batch_size=4, num_threads=1, progress=False,
+                               epochs=6, batch_size=4, progress=False,
                                command="test", crop=None)
     assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
     assert rec["val_known_miou"] > 60
@@ -236,7 +236,7 @@ def test_train_loop_learns_a_toy_task(tmp_path):
         train.train_backbone(tmp_path / "x.pt", toy(4), bad, progress=False)
     # Fine-tuning from the weights just written keeps their record under "init".
     rec = train.train_backbone(tmp_path / "f.pt", toy(8), toy(4), epochs=1, batch_size=4,
-                               num_threads=1, progress=False, command="test", crop=None,
+                               progress=False, command="test", crop=None,
                                init=str(tmp_path / "w.pt"))
     assert rec["init"]["trained_on"] == "toy" and rec["trained_on"] == "arrays"
     # Reproducible: the same options give the same weights, bit for bit.
@@ -244,7 +244,7 @@ def test_train_loop_learns_a_toy_task(tmp_path):
     data = (toy(16), toy(4))
     for name in ("a.pt", "b.pt"):
         train.train_backbone(tmp_path / name, *data, epochs=2, batch_size=4,
-                             num_threads=1, progress=False, command="test", crop=(32, 48),
+                             progress=False, command="test", crop=(32, 48),
                              widths=(8, 8, 16, 16))
     a = small.load_weights(str(tmp_path / "a.pt")).state_dict()
     b = small.load_weights(str(tmp_path / "b.pt")).state_dict()
@@ -367,7 +367,7 @@ def test_esanet_fine_tunes_on_known_classes_and_loads_as_esanet(tmp_path):
                              crop=(48, 48), progress=False)
     out = tmp_path / "mine.pth"
     rec = train.train_backbone(out, data, data, {"trained_on": "toy"}, epochs=1,
-                               batch_size=2, crop=(64, 64), num_threads=1, progress=False,
+                               batch_size=2, crop=(64, 64), progress=False,
                                command="test", arch="esanet", init=str(start))
     assert rec["arch"] == "ESANet-R34-NBt1D" and rec["steps"] == 2
     assert rec["init"]["weights"] == str(start)

@@ -227,11 +227,15 @@ def load_data(args: argparse.Namespace) -> tuple[dict, dict, dict]:
 
 def main(args: argparse.Namespace) -> int:
     """Load the data the options name, train, print the summary."""
+    import torch
+
+    if args.threads > 0:  # this process's choice, not the core's
+        torch.set_num_threads(args.threads)
     t0 = time.time()
     train_data, val_data, source = load_data(args)
     train.train_backbone(args.out, train_data, val_data, source, epochs=args.epochs,
                          batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                         num_threads=args.threads, max_minutes=args.max_minutes,
+                         max_minutes=args.max_minutes,
                          crop=tuple(args.crop), init=args.init, widths=tuple(args.widths),
                          val_every=args.val_every, command=command_line(args),
                          data_seconds=time.time() - t0, arch=args.arch,

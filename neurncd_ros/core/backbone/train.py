@@ -298,7 +298,7 @@ def _init_from(model: small.SmallRGBDNet, init: str) -> dict:
 def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                    val: dict[str, np.ndarray], source: dict | None = None,
                    epochs: int = 12, batch_size: int = 8, lr: float = 4e-3,
-                   weight_decay: float = 1e-4, seed: int = 0, num_threads: int = 2,
+                   weight_decay: float = 1e-4, seed: int = 0,
                    max_minutes: float = 0.0, progress: bool = True,
                    crop: tuple[int, int] | None = (192, 256), init: str | None = None,
                    command: str | None = None,
@@ -338,9 +338,6 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
             raise ValueError(f"ESANet needs sizes divisible by 32; frames/crop are {sizes} "
                              "(e.g. --size 320 256)")
     t_start = time.time()
-    if num_threads > 0:
-        torch.set_num_threads(num_threads)
-    torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
 
@@ -357,7 +354,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         model = _esanet_from(init, esanet_dataset, esanet_depth_mode)
         init_record = {"weights": str(init), "esanet_dataset": esanet_dataset}
     else:
-        model = small.SmallRGBDNet(widths=tuple(widths))
+        with torch.random.fork_rng(devices=[]):  # seeded init, torch's global RNG untouched
+            torch.manual_seed(seed)
+            model = small.SmallRGBDNet(widths=tuple(widths))
         init_record = _init_from(model, init) if init else None
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     warmup = max(min(100, total_steps // 20), 1)
