@@ -23,14 +23,14 @@ Figures (bench/results/odometry.json; trajectory errors measured with evo):
 - ``miou_all_true_poses`` / ``miou_all_odometry``: the whole pipeline
   (``engine.offline.run_frames``, as ``neurncd run``: backbone, Embedding-NeRF,
   discovery) on the same
-  synthetic bags (3 test seeds, ``--ncd-frames`` frames), once with their true
+  synthetic bags (the 3 test seeds, 300 frames as above), once with their true
   poses and once with the pose topic ignored and poses estimated
   (``FrameReader(with_poses=False)`` -> ``with_odometry``), mean over seeds;
   ``miou_drop_points`` is the difference.
 
 Writes bench/results/odometry.png (top view of estimated vs true paths).
 
-    .venv/bin/python bench/odometry.py            # everything (about 25 min on 2 cores)
+    .venv/bin/python bench/odometry.py            # everything (about 10 min on 2 cores)
     .venv/bin/python bench/odometry.py --no-ncd   # trajectories and speed only (2 min)
 """
 
@@ -239,7 +239,7 @@ def save_png(paths: list, path: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=300, help="frames per synthetic trajectory")
-    ap.add_argument("--ncd-frames", type=int, default=90,
+    ap.add_argument("--ncd-frames", type=int, default=300,
                     help="frames per scene for the whole-system comparison")
     ap.add_argument("--no-ncd", action="store_true", help="skip the whole-system comparison")
     args = ap.parse_args()
