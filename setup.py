@@ -22,6 +22,7 @@ RUNTIME_DEPENDENCIES = {
     "python3-opencv": "opencv-python-headless",
     "python3-yaml": "PyYAML",
     "python3-tqdm": "tqdm",
+    "python3-h5py": "h5py",
     "python3-torch": "torch",
     "python3-rosbags-pip": "rosbags",
 }

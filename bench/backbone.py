@@ -32,6 +32,7 @@ from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.backbone import backbone as bb  # noqa: E402
 from neurncd_ros.core.backbone import train  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
+from neurncd_ros.synth import training as synth_training  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 VAL_SEEDS = seeds.BACKBONE_VAL
@@ -110,8 +111,9 @@ def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
     """
     from tqdm import tqdm
 
-    data = train.load_scenes(scene_seeds, 30, synth_cfg=train.training_synth_config(1.0),
-                             what="held-out", workers=2)
+    data = synth_training.load_scenes(scene_seeds, 30,
+                                     synth_cfg=synth_training.training_synth_config(1.0),
+                                     what="held-out", workers=2)
     data = {k: v[::stride] for k, v in data.items()}
     n = classes.NUM_KNOWN
     conf = np.zeros((n, n), dtype=np.int64)

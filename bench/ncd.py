@@ -59,7 +59,7 @@ from neurncd_ros import config
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.engine.mapping import resize_to  # noqa: E402
 from neurncd_ros.core.engine.offline import OfflineEngine  # noqa: E402
-from neurncd_ros.core.backbone import train as bb_train  # noqa: E402
+from neurncd_ros.synth.training import generator_hash  # noqa: E402
 from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.core.camera import Intrinsics  # noqa: E402
@@ -83,7 +83,7 @@ def _key(cfg: config.Config, seed: int, frames: int) -> str:
         sort_keys=True, default=str).encode())
     h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
     h.update(Path(cfg.backbone.checkpoint or DEFAULT_WEIGHTS).read_bytes())
-    h.update(bb_train.generator_hash().encode())
+    h.update(generator_hash().encode())
     return h.hexdigest()[:12]
 
 

@@ -105,11 +105,17 @@ def cmd_convert(args: argparse.Namespace) -> int:
     folder_opts = {k: v for k, v in to_dict(cfg.convert).items()
                    if v != getattr(formats.FolderConfig(), k)}
     t0 = time.perf_counter()
+    report: dict = {}
     n = formats.convert(args.src, args.out, kind=args.kind, storage=args.storage,
                         tf_parent=args.tf_parent, tf_child=args.tf_child, progress=True,
+                        to=args.to, poses=args.poses, odometry=cfg.odometry, report=report,
                         **{**folder_opts, **opts})
-    print(f"converted {n} frames from {args.src} to {args.out} in "
+    print(f"converted {n} frames from {args.src} to {args.out} ({args.to}) in "
           f"{time.perf_counter() - t0:.1f} s")
+    if report:
+        print(f"poses from RGB-D odometry: {report['frames_in']} frames tracked, "
+              f"{report['lost']} lost (left out), {report['relocalised']} relocalised, "
+              f"{report['segments']} map segment(s)")
     return 0
 
 
@@ -132,8 +138,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_train_backbone(args: argparse.Namespace) -> int:
-    from .core.backbone import train
-    return int(train.main(args) or 0)
+    from .tools import train_backbone
+    return int(train_backbone.main(args) or 0)
 
 
 def _set_threads(cfg: config_mod.Config) -> None:
@@ -238,8 +244,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("src")
     p.add_argument("--out", required=True)
     p.add_argument("--kind", default="auto",
-                   help="auto, replica, tum, posetxt, redwood, or bag (a bag with /tf)")
+                   help="auto, replica, tum, nyu (NYUv2 raw scene folder), posetxt, redwood, "
+                   "or bag")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--to", choices=("bag", "replica", "tum"), default="bag",
+                   help="output: a bag (default), a Replica-layout folder or a TUM folder")
+    p.add_argument("--poses", choices=("source", "odometry"), default="source",
+                   help="source: the input's own poses; odometry: estimate them from the "
+                   "images (odometry.* parameters), for inputs without poses")
     p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame")
     p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame")
     p.add_argument("--opt", action="append", metavar="KEY=VALUE",
@@ -255,11 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("train-backbone", help="train the default RGB-D backbone on "
                        "synthetic scenes (9 known classes, novel masked out)")
-    try:
-        from .core.backbone import train
-        train.add_arguments(p)
-    except ImportError:  # pragma: no cover - partial installs
-        pass
+    from .tools import train_backbone
+    train_backbone.add_arguments(p)
     p.set_defaults(func=cmd_train_backbone)
 
     p = sub.add_parser("run", help="run backbone, mapper and discovery on a bag without "

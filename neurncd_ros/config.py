@@ -62,6 +62,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "topics": ("neurncd_ros.core.topics", "Topics"),
     "sync": ("neurncd_ros.core.data.bag", "SyncConfig"),
     "convert": ("neurncd_ros.core.data.formats", "FolderConfig"),
+    "odometry": ("neurncd_ros.core.odometry", "OdometryConfig"),
     "synth": ("neurncd_ros.synth.generator", "SynthConfig"),
     "backbone": ("neurncd_ros.core.backbone.backbone", "BackboneConfig"),
     "mapper": ("neurncd_ros.core.field.mapper", "MapperConfig"),

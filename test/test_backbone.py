@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -215,28 +216,35 @@ def test_train_loop_learns_a_toy_task(tmp_path):
         sem = np.full((n, 48, 64), classes.CLASS_ID["wall"], np.uint16)
         sem[:, 24:] = classes.CLASS_ID["floor"]
         sem[:, :4] = classes.CLASS_ID["ceiling"]  # novel: ignored
-        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).astype(np.uint8)
+        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).repeat(3, -1)
         rgb = (rgb + rng.integers(0, 30, rgb.shape)).astype(np.uint8)
         depth = np.where(sem == classes.CLASS_ID["floor"], 1.5, 3.0).astype(np.float32)
         return {"rgb": rgb, "depth": depth, "semantic": sem}
 
-    rec = train.train_backbone(tmp_path / "w.pt", [0], [1], epochs=6, batch_size=4,
-                               data=(toy(16), toy(4)), num_threads=1, progress=False,
+    rec = train.train_backbone(tmp_path / "w.pt", toy(16), toy(4), {"trained_on": "toy"},
+                               epochs=6, batch_size=4, progress=False,
                                command="test", crop=None)
     assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
     assert rec["val_known_miou"] > 60
-    assert (tmp_path / "w.json").is_file()
+    assert rec["trained_on"] == "toy" and rec["train_frames"] == 16
+    assert json.loads((tmp_path / "w.json").read_text())["trained_on"] == "toy"
     net = small.load_weights(str(tmp_path / "w.pt"))
     assert isinstance(net, small.SmallRGBDNet)
-    with pytest.raises(ValueError, match="overlap"):
-        train.train_backbone(tmp_path / "x.pt", [0, 1], [1], data=(toy(4), toy(4)),
-                             progress=False)
+    with pytest.raises(ValueError, match="validation data: semantic must be uint16"):
+        bad = toy(4)
+        bad["semantic"] = bad["semantic"].astype(np.int32)
+        train.train_backbone(tmp_path / "x.pt", toy(4), bad, progress=False)
+    # Fine-tuning from the weights just written keeps their record under "init".
+    rec = train.train_backbone(tmp_path / "f.pt", toy(8), toy(4), epochs=1, batch_size=4,
+                               progress=False, command="test", crop=None,
+                               init=str(tmp_path / "w.pt"))
+    assert rec["init"]["trained_on"] == "toy" and rec["trained_on"] == "arrays"
     # Reproducible: the same options give the same weights, bit for bit.
     rng = np.random.default_rng(0)
     data = (toy(16), toy(4))
     for name in ("a.pt", "b.pt"):
-        train.train_backbone(tmp_path / name, [0], [1], epochs=2, batch_size=4, data=data,
-                             num_threads=1, progress=False, command="test", crop=(32, 48),
+        train.train_backbone(tmp_path / name, *data, epochs=2, batch_size=4,
+                             progress=False, command="test", crop=(32, 48),
                              widths=(8, 8, 16, 16))
     a = small.load_weights(str(tmp_path / "a.pt")).state_dict()
     b = small.load_weights(str(tmp_path / "b.pt")).state_dict()
@@ -246,18 +254,19 @@ def test_train_loop_learns_a_toy_task(tmp_path):
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
     """Cached frames are reused, but never across a change of the generator's code."""
     from neurncd_ros import synth
+    from neurncd_ros.synth import training
 
     cfg = synth.SynthConfig(width=32, height=24)
-    fresh = train.synth_frames(3, 2, tmp_path, cfg)
+    fresh = training.synth_frames(3, 2, tmp_path, cfg)
     files = list(tmp_path.glob("*.npz"))
-    assert len(files) == 1 and train.generator_hash() in files[0].name
+    assert len(files) == 1 and training.generator_hash() in files[0].name
     # The cache is read: a doctored file under the same key is what comes back.
     np.savez(files[0], rgb=np.zeros_like(fresh["rgb"]), depth=fresh["depth"],
              semantic=fresh["semantic"])
-    assert train.synth_frames(3, 2, tmp_path, cfg)["rgb"].max() == 0
+    assert training.synth_frames(3, 2, tmp_path, cfg)["rgb"].max() == 0
     # Another generator version does not see that file: the frames are rendered again.
-    monkeypatch.setattr(train, "generator_hash", lambda: "0123456789")
-    again = train.synth_frames(3, 2, tmp_path, cfg)
+    monkeypatch.setattr(training, "generator_hash", lambda: "0123456789")
+    again = training.synth_frames(3, 2, tmp_path, cfg)
     assert np.array_equal(again["rgb"], fresh["rgb"])
     assert len(list(tmp_path.glob("*.npz"))) == 2
 
@@ -265,11 +274,13 @@ def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
 def test_record_command_reproduces_the_options():
     import argparse
 
+    from neurncd_ros.tools import train_backbone
+
     p = argparse.ArgumentParser()
-    train.add_arguments(p)
+    train_backbone.add_arguments(p)
     args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8", "16",
                          "16"])
-    line = train.command_line(args)
+    line = train_backbone.command_line(args)
     assert line.startswith("neurncd train-backbone ")
     again = p.parse_args(line.split()[2:])
 
@@ -293,3 +304,77 @@ def test_esanet_checkpoint_loads_through_backbone(tmp_path):
     rgb, depth = _rgbd(240, 320)
     out = b.predict(rgb, depth)
     assert out.shape == (240, 320, 37) and out.dtype == np.float32 and np.isfinite(out).all()
+
+
+def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
+    """`neurncd train-backbone --data` trains on bags with ground truth, splits off
+    validation, records what it saw, and the embedding path loads the weights."""
+    import json
+
+    from neurncd_ros import cli, synth
+    from neurncd_ros.core.data import bag
+
+    cfg = synth.SynthConfig(width=64, height=48)
+    paths = []
+    for seed in (3, 4):
+        paths.append(tmp_path / f"s{seed}.mcap")
+        bag.write_bag(paths[-1], synth.generate(seed, 6, cfg))
+    out = tmp_path / "mine.pt"
+    common = ["train-backbone", "--out", str(out), "--size", "64", "48", "--epochs", "2",
+              "--batch-size", "4", "--crop", "32", "48", "--widths", "8", "8", "16", "16",
+              "--val-every", "0"]
+    assert cli.main(common + ["--data", *map(str, paths)]) == 0
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert rec["trained_on"] == "data" and rec["val_split"] == "frames"
+    assert rec["train_files"] == [str(p) for p in paths] and rec["train_frames"] == 10
+    assert rec["val_frames"] == 2 and rec["train_size"] == [64, 48]
+    assert "--data" in rec["command"] and "--train-seeds" not in rec["command"]
+    assert "validation 2 frames of" in capsys.readouterr().out
+    b = bb.load_backbone(bb.BackboneConfig(checkpoint=str(out), num_threads=1))
+    frame = next(iter(synth.generate(5, 1, cfg)))
+    assert b.predict(frame.rgb, frame.depth).shape == (48, 64, 9)
+    # By files: the last file validates.
+    assert cli.main(common + ["--data", *map(str, paths), "--val-split", "files"]) == 0
+    rec = json.loads(out.with_suffix(".json").read_text())
+    assert rec["val_files"] == [str(paths[1])] and rec["train_frames"] == 6
+    # A bag without ground truth is refused by name.
+    bare = tmp_path / "bare.mcap"
+    bag.write_bag(bare, (_without_ground_truth(f) for f in synth.generate(6, 2, cfg)))
+    assert cli.main(common + ["--data", str(bare), str(paths[0])]) == 1
+    assert "bare.mcap: no frame with semantic ground truth" in capsys.readouterr().err
+
+
+def _without_ground_truth(frame):
+    import dataclasses
+    return dataclasses.replace(frame, semantic=None, instance=None)
+
+
+def test_esanet_fine_tunes_on_known_classes_and_loads_as_esanet(tmp_path):
+    """--arch esanet: a user's ESANet checkpoint, trained on the 9 known classes (its
+    NYU-40 logits pooled per class), saved as an ESANet checkpoint the backbone loads."""
+    from neurncd_ros.core.backbone import esanet
+
+    torch.manual_seed(0)
+    start = tmp_path / "user_esanet.pth"
+    torch.save({"state_dict": esanet.ESANet(40).state_dict()}, start)
+    rng = np.random.default_rng(0)
+    sem = np.full((4, 64, 64), classes.CLASS_ID["wall"], np.uint16)
+    sem[:, 32:] = classes.CLASS_ID["floor"]
+    data = {"rgb": rng.integers(0, 256, (4, 64, 64, 3), dtype=np.uint8),
+            "depth": np.full((4, 64, 64), 2.0, np.float32), "semantic": sem}
+    with pytest.raises(ValueError, match="divisible by 32"):
+        train.train_backbone(tmp_path / "x.pth", data, data, arch="esanet", init=str(start),
+                             crop=(48, 48), progress=False)
+    out = tmp_path / "mine.pth"
+    rec = train.train_backbone(out, data, data, {"trained_on": "toy"}, epochs=1,
+                               batch_size=2, crop=(64, 64), progress=False,
+                               command="test", arch="esanet", init=str(start))
+    assert rec["arch"] == "ESANet-R34-NBt1D" and rec["steps"] == 2
+    assert rec["init"]["weights"] == str(start)
+    b = bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint=str(out),
+                                           input_width=64, input_height=64, num_threads=1))
+    assert b.channels == 40
+    moved = any(not torch.equal(a, c) for a, c in zip(
+        esanet.load_esanet_checkpoint(start).state_dict().values(),
+        b.net.state_dict().values()))
+    assert moved

@@ -1,4 +1,5 @@
-"""The science core and the message conversion import and run without rclpy."""
+"""The science core and the message conversion import and run without rclpy, and the
+core imports nothing of the package outside itself."""
 
 import subprocess
 import sys
@@ -20,6 +21,9 @@ import neurncd_ros.core as core, neurncd_ros.core.msgconv
 mods = [m.name for m in pkgutil.walk_packages(core.__path__, 'neurncd_ros.core.')]
 for m in mods:
     importlib.import_module(m)
+outside = sorted(k for k in sys.modules if k.startswith('neurncd_ros.')
+                 and not k.startswith(('neurncd_ros.core', 'neurncd_ros.config')))
+assert not outside, 'the core imports outside itself: ' + ', '.join(outside)
 from neurncd_ros import config
 config.default()
 assert not any(k.split('.')[0] == 'rclpy' for k in sys.modules)

@@ -189,7 +189,7 @@ def test_convert_folder_and_tf_bag(real_data_dir, tmp_path):
 
 
 def test_bad_inputs_raise_clear_errors(real_data_dir, tmp_path):
-    with pytest.raises(FormatError, match="no such folder"):
+    with pytest.raises(FormatError, match="no such file or folder"):
         list(read_folder(tmp_path / "absent"))
     with pytest.raises(FormatError, match="unknown folder kind"):
         read_folder(real_data_dir / "kinect_dining", kind="kitti")

@@ -15,7 +15,9 @@ class Frame:
 
     - ``rgb``: (H, W, 3) uint8 in RGB order;
     - ``depth``: (H, W) float32 metric z-depth, 0 where there is no measurement;
-    - ``pose``: 4x4 float64 camera-to-world, OpenCV optical axes;
+    - ``pose``: 4x4 float64 camera-to-world, OpenCV optical axes; None only for
+      frames read without poses on their way to the odometry
+      (:func:`neurncd_ros.core.odometry.with_odometry`);
     - ``semantic`` / ``instance``: optional (H, W) uint16 ground truth
       (NYU-13 ids, 0 void; instance ids, 0 none).
     """
@@ -23,7 +25,7 @@ class Frame:
     stamp_ns: int
     rgb: np.ndarray
     depth: np.ndarray
-    pose: np.ndarray
+    pose: np.ndarray | None
     intrinsics: Intrinsics
     semantic: np.ndarray | None = None
     instance: np.ndarray | None = None
@@ -42,5 +44,6 @@ class Frame:
             if img is not None and (img.shape != (h, w) or img.dtype != np.uint16):
                 raise ValueError(f"{name} must be ({h}, {w}) uint16, got {img.shape} "
                                  f"{img.dtype}")
-        self.pose = check_pose(self.pose)
+        if self.pose is not None:
+            self.pose = check_pose(self.pose)
         return self

@@ -1,27 +1,27 @@
-"""Train the default small backbone on synthetic scenes (the paper's protocol).
+"""Train the default small backbone on frames with semantic ground truth.
 
 Protocol, following NeurNCD's use of ESANet: cross-entropy over the 9 known
 NYU-13 classes only; pixels of the novel classes (ceiling, picture, tv,
 window) and void pixels are ignored in the loss, so the net never learns the
 novel classes and its pre-softmax logits stay an honest "known-class"
-embedding. Validation uses held-out synthetic seeds (disjoint scenes).
+embedding. Validation uses held-out frames (disjoint scenes or files).
+
+The data is injected: :func:`train_backbone` takes train and validation
+arrays (:func:`frames_to_arrays` makes them from any Frames with ground
+truth) and a ``source`` record of where they came from, which goes into the
+training record. The synthetic scenes are one such source
+(``neurncd_ros.synth.training``); bags and dataset folders are others
+(``neurncd train-backbone --data``).
 
 Known-class mIoU (percent), as reported here: over all validation pixels whose
 ground truth is one of the 9 known classes, the prediction is the argmax
 among the 9 channels; IoU_k = |pred=k and gt=k| / |pred=k or gt=k| counted
 on those pixels only; the mean runs over the known classes present in the
 validation ground truth.
-
-Synthetic frames are generated once per (seed, frames, config, generator
-source) and cached as npz under a temporary folder (never inside the
-repository). The key includes a hash of the generator's source files, so a
-changed generator never serves stale frames.
 """
 
 from __future__ import annotations
 
-import argparse
-import hashlib
 import json
 import math
 import os
@@ -29,20 +29,18 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Iterable
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from .. import classes
-from ...synth import seeds
+from ..frame import Frame
 from . import small
 
 IGNORE = 255
 """Target value of pixels left out of the loss (void and novel classes)."""
-
-DEFAULT_CACHE = Path(os.environ.get("NEURNCD_SYNTH_CACHE", "/tmp/neurncd_synth_cache"))
 
 # NYU-13 id -> training target (channel index for known classes, IGNORE otherwise).
 _ID_TO_TARGET = np.full(65536, IGNORE, dtype=np.uint8)
@@ -58,96 +56,57 @@ def semantic_to_target(semantic: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- data
-def _synth_cfg_dict(cfg) -> dict:
-    from ..params import to_dict
-    return to_dict(cfg)
+ARRAY_KEYS = ("rgb", "depth", "semantic")
 
 
-def generator_hash() -> str:
-    """Short hash of the synthetic generator's source (part of the cache key)."""
-    from ... import synth
+def check_arrays(data: dict[str, np.ndarray], what: str) -> int:
+    """Validate training arrays (rgb N,H,W,3 uint8; depth N,H,W float32; semantic N,H,W
+    uint16 NYU-13 ids); returns N or raises ValueError naming ``what``."""
+    missing = [k for k in ARRAY_KEYS if k not in data]
+    if missing:
+        raise ValueError(f"{what}: missing arrays {missing}; need {list(ARRAY_KEYS)}")
+    rgb, depth, sem = (np.asarray(data[k]) for k in ARRAY_KEYS)
+    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"{what}: rgb must be (N, H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if depth.shape != rgb.shape[:3] or sem.shape != rgb.shape[:3]:
+        raise ValueError(f"{what}: depth {depth.shape} and semantic {sem.shape} must be "
+                         f"{rgb.shape[:3]}")
+    if sem.dtype != np.uint16:
+        raise ValueError(f"{what}: semantic must be uint16 NYU-13 ids, got {sem.dtype}")
+    if len(rgb) == 0:
+        raise ValueError(f"{what}: no frames")
+    return len(rgb)
 
-    h = hashlib.sha1()
-    for path in sorted(Path(synth.__file__).parent.glob("*.py")):
-        h.update(path.name.encode())
-        h.update(path.read_bytes())
-    return h.hexdigest()[:10]
 
+def frames_to_arrays(frames: Iterable[Frame], width: int = 320, height: int = 240
+                     ) -> tuple[dict[str, np.ndarray], int]:
+    """Frames with semantic ground truth -> training arrays at ``width`` x ``height``.
 
-def synth_frames(seed: int, frames: int, cache_dir: Path | None = DEFAULT_CACHE,
-                 synth_cfg=None) -> dict[str, np.ndarray]:
-    """rgb (N,H,W,3) uint8, depth (N,H,W) float32, semantic (N,H,W) uint16 of one scene.
-
-    Generated with ``synth.generate(seed, frames, cfg)`` and cached as npz
-    keyed by seed, frame count, a hash of the synthetic config and a hash of
-    the generator's source (:func:`generator_hash`).
+    Every frame is resized to the size the backbone runs at (colour bilinear,
+    depth and labels nearest, so holes and class borders stay crisp); frames
+    without ground truth are skipped and counted. Returns (arrays, skipped).
     """
-    from ... import synth
+    import cv2
 
-    cfg = synth_cfg if synth_cfg is not None else synth.SynthConfig()
-    key = hashlib.sha1(json.dumps(_synth_cfg_dict(cfg), sort_keys=True, default=str)
-                       .encode()).hexdigest()[:10]
-    path = None
-    if cache_dir is not None:
-        path = Path(cache_dir) / f"synth_s{seed}_n{frames}_{key}_{generator_hash()}.npz"
-        if path.is_file():
-            with np.load(path) as z:
-                return {k: z[k] for k in ("rgb", "depth", "semantic")}
     rgb, depth, sem = [], [], []
-    for fr in synth.generate(seed, frames, cfg):
+    skipped = 0
+    for fr in frames:
         if fr.semantic is None:
-            raise ValueError(f"synthetic seed {seed}: frame has no semantic ground truth")
-        rgb.append(fr.rgb)
-        depth.append(fr.depth.astype(np.float32))
-        sem.append(fr.semantic.astype(np.uint16))
-    data = {"rgb": np.stack(rgb), "depth": np.stack(depth), "semantic": np.stack(sem)}
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **data)
-        tmp.replace(path)
-    return data
-
-
-def training_synth_config(fps: float = 1.0):
-    """Synthetic config of backbone training/validation: defaults, frames ``1/fps`` s apart.
-
-    At the default 30 fps a 30-frame run covers one second of walking, i.e.
-    nearly the same view 30 times; 1 fps spreads the frames over the room.
-    """
-    from ... import synth
-    return synth.SynthConfig(fps=fps)
-
-
-def _synth_job(args):
-    seed, frames, cache_dir, synth_cfg = args
-    synth_frames(seed, frames, cache_dir, synth_cfg)
-    return seed
-
-
-def load_scenes(seeds: Sequence[int], frames: int, cache_dir: Path | None = DEFAULT_CACHE,
-                synth_cfg=None, progress: bool = True, what: str = "scenes",
-                workers: int = 1) -> dict[str, np.ndarray]:
-    """Concatenate :func:`synth_frames` over seeds (one progress bar).
-
-    ``workers`` > 1 renders missing scenes in that many processes first (needs
-    a cache folder to hand the arrays back).
-    """
-    from tqdm import tqdm
-
-    seeds = list(seeds)
-    if synth_cfg is None:
-        synth_cfg = training_synth_config()
-    if workers > 1 and cache_dir is not None and len(seeds) > 1:
-        import multiprocessing as mp
-        jobs = [(s, frames, cache_dir, synth_cfg) for s in seeds]
-        with mp.get_context("fork").Pool(workers) as pool:
-            for _ in tqdm(pool.imap_unordered(_synth_job, jobs), total=len(jobs),
-                          desc=f"render {what}", disable=not progress, unit="seed"):
-                pass
-    parts = [synth_frames(s, frames, cache_dir, synth_cfg)
-             for s in tqdm(seeds, desc=f"synth {what}", disable=not progress, unit="seed")]
-    return {k: np.concatenate([p[k] for p in parts]) for k in ("rgb", "depth", "semantic")}
+            skipped += 1
+            continue
+        r, d, s = fr.rgb, fr.depth, fr.semantic
+        if d.shape != (height, width):
+            r = cv2.resize(r, (width, height), interpolation=cv2.INTER_AREA)
+            d = cv2.resize(d, (width, height), interpolation=cv2.INTER_NEAREST)
+            s = cv2.resize(s, (width, height), interpolation=cv2.INTER_NEAREST)
+        rgb.append(r)
+        depth.append(d.astype(np.float32))
+        sem.append(s.astype(np.uint16))
+    if not rgb:
+        return {"rgb": np.zeros((0, height, width, 3), np.uint8),
+                "depth": np.zeros((0, height, width), np.float32),
+                "semantic": np.zeros((0, height, width), np.uint16)}, skipped
+    return {"rgb": np.stack(rgb), "depth": np.stack(depth), "semantic": np.stack(sem)}, skipped
 
 
 # ----------------------------------------------------------------------------- augmentation
@@ -254,78 +213,151 @@ def class_weights(targets: np.ndarray, power: float = 0.5, cap: float = 5.0) -> 
     return np.minimum(w, cap).astype(np.float32)
 
 
-def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: Sequence[int],
-                   frames_per_seed: int = 20, epochs: int = 12, batch_size: int = 8,
-                   lr: float = 4e-3, weight_decay: float = 1e-4, seed: int = 0,
-                   num_threads: int = 2, cache_dir: Path | None = DEFAULT_CACHE,
-                   max_minutes: float = 0.0, progress: bool = True, synth_cfg=None,
-                   fps: float = 1.0, val_frames_per_seed: int = 30, workers: int = 1,
-                   crop: tuple[int, int] | None = (192, 256), init: str | None = None,
-                   data: tuple[dict, dict] | None = None, command: str | None = None,
-                   widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
-                   val_every: int = 0) -> dict:
-    """Train the default net, save weights to ``out_path`` and the record next to it.
+class KnownClassESANet(torch.nn.Module):
+    """ESANet R34-NBt1D trained on the known classes: its NYU-40 logits pooled
+    (log-sum-exp over the channels of each class) into the 9 known NYU-13 classes.
 
-    Returns the training record (also written as ``<out_path stem>.json``):
-    command, seeds, hyper-parameters, validation scores, time, versions.
+    The loss sees only known classes, as for the default net; the network keeps
+    its own head, so the result is an ordinary ESANet checkpoint
+    (``{'state_dict': ...}``) that ``backbone.kind: esanet`` loads unchanged.
+    """
+
+    def __init__(self, net: torch.nn.Module, dataset: str = "nyuv2",
+                 depth_mode: str = "raw") -> None:
+        from .backbone import esanet_channel_to_id
+
+        super().__init__()
+        self.net, self.dataset, self.depth_mode = net, dataset, depth_mode
+        ids = esanet_channel_to_id(dataset)
+        if ids.size != getattr(net, "num_classes", ids.size):
+            raise ValueError(f"ESANet has {net.num_classes} classes but esanet_dataset "
+                             f"{dataset!r} has {ids.size}")
+        for k, cid in enumerate(classes.KNOWN_IDS):
+            self.register_buffer(f"group{k}", torch.from_numpy(np.flatnonzero(ids == cid)))
+
+    def predict_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        from . import esanet
+
+        out = self.net(esanet.preprocess_rgb(rgb),
+                       esanet.preprocess_depth(depth, self.dataset, self.depth_mode))
+        if isinstance(out, (tuple, list)):  # training mode: side outputs follow
+            out = out[0]
+        return torch.stack([torch.logsumexp(out[:, getattr(self, f"group{k}")], dim=1)
+                            for k in range(classes.NUM_KNOWN)], dim=1)
+
+
+def _esanet_from(path: str, dataset: str, depth_mode: str) -> KnownClassESANet:
+    from . import esanet
+
+    from .backbone import esanet_channel_to_id
+    net = esanet.load_esanet_checkpoint(path, num_classes=len(esanet_channel_to_id(dataset)))
+    return KnownClassESANet(net, dataset, depth_mode)
+
+
+def loss_terms(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+               ) -> dict[str, torch.Tensor]:
+    """The training objective as named terms, summed by :func:`train_step`.
+
+    ``ce``: class-weighted cross-entropy over the known channels, void and novel
+    pixels (IGNORE) left out. A new term is one more entry here; each term's
+    mean per epoch is logged in the record's history.
+    """
+    return {"ce": F.cross_entropy(logits, target, weight=weights, ignore_index=IGNORE)}
+
+
+def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, rgb: torch.Tensor,
+               depth: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+               ) -> dict[str, float]:
+    """One optimiser step on an (augmented) batch; returns the loss and its terms."""
+    logits = model.predict_raw(rgb, depth)
+    terms = loss_terms(logits, target, weights)
+    loss = sum(terms.values())
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return {"loss": float(loss.detach()), **{k: float(v.detach()) for k, v in terms.items()}}
+
+
+def _init_from(model: small.SmallRGBDNet, init: str) -> dict:
+    """Load ``init``'s weights into ``model``; returns what the record keeps of it."""
+    prev_model = small.load_weights(init)
+    if prev_model.widths != model.widths:
+        raise ValueError(f"--init {init} has widths {prev_model.widths}, "
+                         f"training widths {model.widths}")
+    model.load_state_dict(prev_model.state_dict())
+    rec_path = Path(init).with_suffix(".json")
+    init_record = {"weights": str(init)}
+    if rec_path.is_file():
+        prev = json.loads(rec_path.read_text())
+        init_record.update({k: prev.get(k) for k in (
+            "command", "steps", "epochs_run", "lr", "train_seconds", "val_known_miou",
+            "init", "trained_on")})
+    return init_record
+
+
+def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
+                   val: dict[str, np.ndarray], source: dict | None = None,
+                   epochs: int = 12, batch_size: int = 8, lr: float = 4e-3,
+                   weight_decay: float = 1e-4, seed: int = 0,
+                   max_minutes: float = 0.0, progress: bool = True,
+                   crop: tuple[int, int] | None = (192, 256), init: str | None = None,
+                   command: str | None = None,
+                   widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
+                   val_every: int = 0, data_seconds: float = 0.0, arch: str = "default",
+                   esanet_dataset: str = "nyuv2", esanet_depth_mode: str = "raw") -> dict:
+    """Train the default net on ``train``, save weights to ``out_path`` and the record
+    next to it (``<out_path stem>.json``); returns the record.
+
+    ``train`` / ``val``: arrays as :func:`check_arrays` wants them. ``source``
+    says what they are (seeds, files, split) and is copied into the record.
     ``max_minutes`` > 0 sets the schedule length by time instead of epochs
     (the learning-rate schedule is stretched to the estimated step count).
-    ``synth_cfg`` defaults to :func:`training_synth_config` (``fps``); ``data`` =
-    (train, val) dicts bypasses the synthetic generator (tests). ``init`` continues
-    from an earlier weight file (its record, if beside it, is kept under "init").
-    ``val_every`` > 0 validates every that many steps and logs the score in the
-    record's history (for the record only: the final weights are always those
-    of the last step, no checkpoint is selected on the validation seeds).
-    The reported validation scores are those of the saved fp16 weights.
+    ``init`` continues from an earlier weight file (fine-tuning; its record, if
+    beside it, is kept under "init"). ``val_every`` > 0 validates every that many
+    steps and logs the score in the record's ``val_curve`` (for the record only:
+    the final weights are always those of the last step, no checkpoint is
+    selected on the validation data). The reported validation scores are those
+    of the saved fp16 weights. ``arch="esanet"`` fine-tunes the ESANet checkpoint
+    ``init`` instead (:class:`KnownClassESANet`; frame sizes multiples of 32) and
+    writes an ESANet checkpoint.
     """
     from tqdm import tqdm
 
-    if not train_seeds or not val_seeds:
-        raise ValueError("need at least one training seed and one validation seed")
-    overlap = set(train_seeds) & set(val_seeds)
-    if overlap:
-        raise ValueError(f"validation seeds overlap training seeds: {sorted(overlap)}")
-    if epochs < 1 or batch_size < 1 or frames_per_seed < 1:
-        raise ValueError("epochs, batch_size and frames_per_seed must be >= 1")
+    if epochs < 1 or batch_size < 1:
+        raise ValueError("epochs and batch_size must be >= 1")
+    n = check_arrays(train, "training data")
+    check_arrays(val, "validation data")
+    if arch not in ("default", "esanet"):
+        raise ValueError(f"arch must be 'default' or 'esanet', got {arch!r}")
+    if arch == "esanet":
+        if not init:
+            raise ValueError("arch esanet fine-tunes a checkpoint: give init=<ESANet .pth>")
+        sizes = [train["rgb"].shape[1:3], val["rgb"].shape[1:3]] + \
+            ([tuple(crop)] if crop is not None else [])
+        if any(h % 32 or w % 32 for h, w in sizes):
+            raise ValueError(f"ESANet needs sizes divisible by 32; frames/crop are {sizes} "
+                             "(e.g. --size 320 256)")
     t_start = time.time()
-    if num_threads > 0:
-        torch.set_num_threads(num_threads)
-    torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
 
-    if data is None:
-        if synth_cfg is None:
-            synth_cfg = training_synth_config(fps)
-        train = load_scenes(train_seeds, frames_per_seed, cache_dir, synth_cfg, progress,
-                            "train", workers)
-        val = load_scenes(val_seeds, val_frames_per_seed, cache_dir, synth_cfg, progress,
-                          "val", workers)
-    else:
-        train, val = data
-    t_data = time.time() - t_start
     targets = semantic_to_target(train["semantic"])
+    if not (targets != IGNORE).any():
+        raise ValueError("training data has no pixel of a known class "
+                         f"({', '.join(classes.KNOWN_NAMES)})")
     weights = torch.from_numpy(class_weights(targets))
     depth_all = np.nan_to_num(train["depth"], nan=0.0, posinf=0.0, neginf=0.0)
-    n = len(targets)
     steps_per_epoch = max(n // batch_size, 1)
     total_steps = steps_per_epoch * epochs
 
-    model = small.SmallRGBDNet(widths=tuple(widths))
-    init_record = None
-    if init:
-        prev_model = small.load_weights(init)
-        if prev_model.widths != model.widths:
-            raise ValueError(f"--init {init} has widths {prev_model.widths}, "
-                             f"training widths {model.widths}")
-        model.load_state_dict(prev_model.state_dict())
-        rec_path = Path(init).with_suffix(".json")
-        init_record = {"weights": str(init)}
-        if rec_path.is_file():
-            prev = json.loads(rec_path.read_text())
-            init_record.update({k: prev.get(k) for k in (
-                "command", "steps", "epochs_run", "lr", "train_seconds", "val_known_miou",
-                "init")})
+    if arch == "esanet":
+        model = _esanet_from(init, esanet_dataset, esanet_depth_mode)
+        init_record = {"weights": str(init), "esanet_dataset": esanet_dataset}
+    else:
+        with torch.random.fork_rng(devices=[]):  # seeded init, torch's global RNG untouched
+            torch.manual_seed(seed)
+            model = small.SmallRGBDNet(widths=tuple(widths))
+        init_record = _init_from(model, init) if init else None
     opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     warmup = max(min(100, total_steps // 20), 1)
 
@@ -344,7 +376,7 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
     for epoch in range(epochs):
         model.train()
         order = rng.permutation(n)
-        losses = []
+        logs: list[dict[str, float]] = []
         for i in range(steps_per_epoch):
             idx = np.sort(order[i * batch_size: (i + 1) * batch_size])
             rgb = torch.from_numpy(train["rgb"][idx]).permute(0, 3, 1, 2).float()
@@ -353,19 +385,15 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
             rgb, depth, tgt = augment(rgb, depth, tgt, gen, crop=crop)
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, total_steps)
-            logits = model.predict_raw(rgb, depth)
-            loss = F.cross_entropy(logits, tgt, weight=weights, ignore_index=IGNORE)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()))
+            logs.append(train_step(model, opt, rgb, depth, tgt, weights))
             step += 1
             bar.update(1)
-            bar.set_postfix(epoch=epoch, loss=f"{np.mean(losses[-20:]):.3f}")
+            bar.set_postfix(epoch=epoch,
+                            loss=f"{np.mean([x['loss'] for x in logs[-20:]]):.3f}")
             if max_minutes > 0 and step == 20:
                 # Re-plan the schedule to fit the time budget.
                 per_step = (time.time() - t_train) / step
-                budget = max_minutes * 60 - (time.time() - t_start)
+                budget = max_minutes * 60 - (time.time() - t_start) - data_seconds
                 total_steps = max(step + 1, min(total_steps, int(budget / per_step)))
                 bar.total = total_steps
             if val_every > 0 and step % val_every == 0 and step < total_steps:
@@ -376,7 +404,12 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
             if step >= total_steps:
                 stop = True
                 break
-        entry = {"epoch": epoch, "loss": round(float(np.mean(losses)), 4), "steps": step}
+        entry = {"epoch": epoch}
+        for key in logs[0]:
+            entry[key] = round(float(np.mean([x[key] for x in logs])), 4)
+        if set(logs[0]) == {"loss", "ce"}:
+            del entry["ce"]  # one term: the loss itself
+        entry["steps"] = step
         history.append(entry)
         if stop:
             break
@@ -384,17 +417,25 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
     train_time = time.time() - t_train
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    small.save_weights(model, str(out_path))
-    shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
+    if arch == "esanet":
+        torch.save({"state_dict": model.net.state_dict()}, out_path)
+        shipped = _esanet_from(str(out_path), esanet_dataset, esanet_depth_mode)
+    else:
+        small.save_weights(model, str(out_path))
+        shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
     val_scores = evaluate(shipped, val, progress=progress)
+    source = dict(source) if source else {"trained_on": "arrays"}
     record = {
         "command": command if command is not None else " ".join(sys.argv),
-        "arch": "SmallRGBDNet", "arch_version": small.ARCH_VERSION,
-        "widths": list(model.widths),
-        "parameters": small.count_parameters(model),
-        "gflops_320x240": round(small.count_flops(model) / 1e9, 3),
-        "train_seeds": list(map(int, train_seeds)), "val_seeds": list(map(int, val_seeds)),
-        "frames_per_seed": frames_per_seed, "train_frames": int(n),
+        **({"arch": "SmallRGBDNet", "arch_version": small.ARCH_VERSION,
+            "widths": list(model.widths),
+            "parameters": small.count_parameters(model),
+            "gflops_320x240": round(small.count_flops(model) / 1e9, 3)} if arch == "default"
+           else {"arch": "ESANet-R34-NBt1D", "esanet_dataset": esanet_dataset,
+                 "parameters": small.count_parameters(model)}),
+        **{k: v for k, v in source.items() if k != "synth_config"},
+        "train_frames": int(n), "train_size": [int(train["rgb"].shape[2]),
+                                               int(train["rgb"].shape[1])],
         "val_frames": int(len(val["rgb"])),
         "epochs_planned": epochs, "epochs_run": len(history), "steps": step,
         "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay, "seed": seed,
@@ -402,21 +443,21 @@ def train_backbone(out_path: str | Path, train_seeds: Sequence[int], val_seeds: 
         "loss": "cross-entropy over 9 known classes; void and novel "
                 "(ceiling, picture, tv, window) ignored",
         "augmentation": f"flip, zoom 0.8-1.35, crop {crop}, colour jitter 0.25, rgb noise",
-        "synth_fps": fps if data is None else None,
-        "synth_generator_hash": generator_hash() if data is None else None,
         "val_known_miou": round(val_scores["known_miou"], 2),
         "val_pixel_accuracy": round(val_scores["pixel_accuracy"], 4),
         "val_iou": val_scores["iou"],
         "history": history, "val_curve": val_curve, "init": init_record,
-        "data_seconds": round(t_data, 1), "train_seconds": round(train_time, 1),
-        "total_seconds": round(time.time() - t_start, 1),
+        "data_seconds": round(data_seconds, 1), "train_seconds": round(train_time, 1),
+        "total_seconds": round(time.time() - t_start + data_seconds, 1),
         "num_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
         "torch": torch.__version__, "numpy": np.__version__, "python": platform.python_version(),
         "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    if synth_cfg is not None:
-        record["synth_config"] = _synth_cfg_dict(synth_cfg)
-    small.save_weights(model, str(out_path), extra={"val_known_miou": record["val_known_miou"]})
+    if "synth_config" in source:
+        record["synth_config"] = source["synth_config"]
+    if arch == "default":
+        small.save_weights(model, str(out_path),
+                           extra={"val_known_miou": record["val_known_miou"]})
     record["weights_bytes"] = out_path.stat().st_size
     out_path.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     if progress:
@@ -429,114 +470,15 @@ def summary(record: dict) -> str:
     ious = ", ".join(f"{k} {v:.1f}" for k, v in record["val_iou"].items() if v is not None)
     return (f"trained {record['steps']} steps ({record['epochs_run']} epochs, "
             f"{record['train_frames']} frames) in {record['train_seconds'] / 60:.1f} min\n"
-            f"validation seeds {record['val_seeds']}: known-class mIoU "
+            f"validation {_val_text(record)}: known-class mIoU "
             f"{record['val_known_miou']:.2f} %, pixel accuracy "
             f"{record['val_pixel_accuracy'] * 100:.1f} %\nper-class IoU: {ious}")
 
 
-# ----------------------------------------------------------------------------- CLI
-def _seed_list(text: str) -> list[int]:
-    """'0-39' or '1000,1001' or '0-9,20' -> list of ints."""
-    out: list[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        if "-" in part[1:]:
-            a, b = part.split("-", 1)
-            out.extend(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    if not out:
-        raise argparse.ArgumentTypeError(f"no seeds in {text!r}")
-    return out
-
-
-def seed_text(seeds: Sequence[int]) -> str:
-    """[0, 1, 2, 5] -> '0-2,5' (the inverse of the --*-seeds parser)."""
-    out, run = [], []
-    for s in list(seeds) + [None]:
-        if s is not None and run and s == run[-1] + 1:
-            run.append(s)
-            continue
-        if run:
-            out.append(f"{run[0]}-{run[-1]}" if len(run) > 2 else ",".join(map(str, run)))
-        run = [s] if s is not None else []
-    return ",".join(out)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``neurncd train-backbone``."""
-    from .backbone import DEFAULT_WEIGHTS
-
-    parser.add_argument("--out", default=str(DEFAULT_WEIGHTS),
-                        help="weight file to write (record json goes next to it)")
-    parser.add_argument("--train-seeds", type=_seed_list,
-                        default=list(seeds.BACKBONE_TRAIN),
-                        help="synthetic scene seeds to train on (default "
-                        f"{seed_text(seeds.BACKBONE_TRAIN)}, see neurncd_ros/synth/seeds.py)")
-    parser.add_argument("--val-seeds", type=_seed_list, default=list(seeds.BACKBONE_VAL),
-                        help="held-out synthetic seeds for validation (default "
-                        f"{seed_text(seeds.BACKBONE_VAL)})")
-    parser.add_argument("--frames", type=int, default=20,
-                        help="frames per training scene")
-    parser.add_argument("--val-frames", type=int, default=30,
-                        help="frames per validation scene")
-    parser.add_argument("--fps", type=float, default=1.0,
-                        help="synthetic frame rate: 1 spreads a scene's frames over its room")
-    parser.add_argument("--workers", type=int, default=2,
-                        help="processes rendering synthetic scenes")
-    parser.add_argument("--epochs", type=int, default=32, help="passes over the training frames")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--lr", type=float, default=4e-3, help="peak AdamW learning rate")
-    parser.add_argument("--seed", type=int, default=0, help="seed of init, order, augmentation")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch CPU threads (1 is fastest on a busy machine)")
-    parser.add_argument("--crop", type=int, nargs=2, default=(192, 256), metavar=("H", "W"),
-                        help="training window size after zoom")
-    parser.add_argument("--max-minutes", type=float, default=0.0,
-                        help="fit the schedule into this wall time (0 = run all epochs)")
-    parser.add_argument("--widths", type=int, nargs=4, default=small.DEFAULT_WIDTHS,
-                        metavar=("C0", "C1", "C2", "C3"),
-                        help="channels of the stem and the three encoder stages")
-    parser.add_argument("--val-every", type=int, default=1000,
-                        help="validate every this many steps, for the record (0 = end only)")
-    parser.add_argument("--init", default=None,
-                        help="continue training from this weight file")
-    parser.add_argument("--cache", default=str(DEFAULT_CACHE),
-                        help="folder for cached synthetic frames (npz)")
-
-
-def command_line(args: argparse.Namespace) -> str:
-    """The ``neurncd train-backbone`` command that reproduces a run (every option spelt out)."""
-    parts = ["neurncd", "train-backbone"]
-    for key, value in sorted(vars(args).items()):
-        if key in ("func", "command") or value is None:
-            continue
-        flag = "--" + key.replace("_", "-")
-        if isinstance(value, (list, tuple)):
-            if key.endswith("seeds"):
-                parts += [flag, seed_text(value)]
-            else:
-                parts += [flag, *map(str, value)]
-        else:
-            parts += [flag, str(value)]
-    return " ".join(parts)
-
-
-def main(args: argparse.Namespace) -> int:
-    """Run training from parsed arguments; print the summary."""
-    train_backbone(args.out, args.train_seeds, args.val_seeds, frames_per_seed=args.frames,
-                   epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-                   num_threads=args.threads, cache_dir=Path(args.cache) if args.cache else None,
-                   max_minutes=args.max_minutes, fps=args.fps,
-                   val_frames_per_seed=args.val_frames, workers=args.workers,
-                   crop=tuple(args.crop), init=args.init, widths=tuple(args.widths),
-                   val_every=args.val_every, command=command_line(args))
-    return 0
-
-
-if __name__ == "__main__":
-    _p = argparse.ArgumentParser(description="train the default small RGB-D backbone")
-    add_arguments(_p)
-    sys.exit(main(_p.parse_args()))
+def _val_text(record: dict) -> str:
+    if "val_seeds" in record:
+        return f"seeds {record['val_seeds']}"
+    files = record.get("val_files")
+    if files:
+        return f"{record['val_frames']} frames of {', '.join(map(str, files))}"
+    return f"{record['val_frames']} frames"

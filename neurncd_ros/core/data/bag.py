@@ -211,6 +211,9 @@ def frame_messages(fr: Frame, topics: Topics = Topics(), depth_encoding: str = "
     if pose_mode not in ("topic", "tf", "both"):
         raise BagError(f"pose_mode must be topic, tf or both, got {pose_mode!r}")
     fr.validate()
+    if fr.pose is None:
+        raise BagError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
+                       "`neurncd convert --poses odometry`)")
     s, cam = int(fr.stamp_ns), topics.camera_frame
     rgb = fr.rgb if color_encoding == "rgb8" else fr.rgb[:, :, ::-1]
     out = [
@@ -442,8 +445,10 @@ class FrameReader:
                  with_ground_truth: bool = SyncConfig.with_ground_truth,
                  max_stamp_skew_ns: int = SyncConfig.max_stamp_skew_ns,
                  tf_parent: str | None = None, tf_child: str | None = None,
-                 max_pose_gap_ns: int = SyncConfig.max_pose_gap_ns) -> None:
+                 max_pose_gap_ns: int = SyncConfig.max_pose_gap_ns,
+                 with_poses: bool = True) -> None:
         self.path = Path(path)
+        self.with_poses = with_poses
         self.topics = topics
         self.with_ground_truth = with_ground_truth
         self.skew = int(max_stamp_skew_ns)
@@ -484,11 +489,14 @@ class FrameReader:
                                 (tp.camera_info, CAMERA_INFO)):
                 if types[topic] != want:
                     raise BagError(f"{path}: {topic} has type {types[topic]}, expected {want}")
-            if self.tf_pair is None:
+            if not self.with_poses:
+                self.pose_source = "none (to be estimated)"
+            elif self.tf_pair is None:
                 if tp.pose not in types:
                     raise BagError(f"{path}: no pose topic {tp.pose!r} (topics: "
                                    f"{sorted(types)}); for a /tf pose pass tf_parent and "
-                                   "tf_child")
+                                   "tf_child; a bag without poses gets them from "
+                                   "`neurncd convert --poses odometry`")
                 self.pose_source = tp.pose
             else:
                 if tp.tf not in types and tp.tf_static not in types:
@@ -500,7 +508,8 @@ class FrameReader:
             self.gt_roles = gt_roles
             image_roles = {tp.color: "color", tp.depth: "depth"}
             image_roles.update({getattr(tp, r): r for r in gt_roles})
-            small = [tp.camera_info] + ([tp.pose] if self.tf_pair is None else
+            small = [tp.camera_info] + ([] if not self.with_poses else
+                                        [tp.pose] if self.tf_pair is None else
                                         [t for t in (tp.tf, tp.tf_static) if t in types])
             heads: dict[str, list[tuple[int, int, int]]] = collections.defaultdict(list)
             infos: list[tuple[int, Intrinsics | str]] = []
@@ -593,19 +602,22 @@ class FrameReader:
             return (f"size mismatch: camera_info is {intr.width}x{intr.height} but colour is "
                     f"{size[1]}x{size[0]}"), None
         source = tp.pose if self.tf_pair is None else "tf {}->{}".format(*self.tf_pair)
-        try:
-            if self.tf_pair is None:
-                pose = pose_at(pose_t, pose_vals, s, self.skew, self.max_gap)
-            else:
-                pose = tfbuf.lookup(self.tf_pair[0], self.tf_pair[1], s, self.skew,
-                                    self.max_gap)
-            pose = check_pose(pose, f"{source} pose")
-        except LookupError as err:
-            text = str(err.args[0]) if err.args else repr(err)
-            kind = "bad pose" if text.startswith("invalid sample") else "missing pose"
-            return f"{kind}: {source}: {text}", None
-        except ValueError as err:
-            return f"bad pose: {err}", None
+        if not self.with_poses:
+            pose = None
+        else:
+            try:
+                if self.tf_pair is None:
+                    pose = pose_at(pose_t, pose_vals, s, self.skew, self.max_gap)
+                else:
+                    pose = tfbuf.lookup(self.tf_pair[0], self.tf_pair[1], s, self.skew,
+                                        self.max_gap)
+                pose = check_pose(pose, f"{source} pose")
+            except LookupError as err:
+                text = str(err.args[0]) if err.args else repr(err)
+                kind = "bad pose" if text.startswith("invalid sample") else "missing pose"
+                return f"{kind}: {source}: {text}", None
+            except ValueError as err:
+                return f"bad pose: {err}", None
         keys = {"color": (tp.color, s), "depth": (tp.depth, dep[0])}
         for role in self.gt_roles:
             m = self._match(table, role, s)

@@ -15,6 +15,12 @@ Folder layouts understood by :func:`read_folder`:
   qz qw`` a line), e.g. slambook's NYU dining room and ICL-NUIM (``preset="icl"``);
 - ``redwood``: ``color/``, ``depth/``, ``trajectory.log`` (Open3D log) and
   ``camera_primesense.json`` (column-major K).
+- ``nyu``: a NYUv2 raw scene folder (``r-*.ppm``, ``d-*.pgm``, no poses: read
+  with ``with_poses=False`` for the odometry; ``labelled=`` attaches the
+  labelled frames taken from it);
+- ``nyu_labelled``: NYUv2's labelled ``.mat`` (:mod:`.nyu`).
+
+Replica ``semantic_class/`` ids become NYU-13 through :mod:`.replica_classes`.
 
 Depth decoding, scales and intrinsics are parameters (:class:`FolderConfig`);
 ``preset`` fills in the documented defaults of a dataset.
@@ -37,7 +43,7 @@ from ..frame import Frame
 from ..params import build, param
 from ..sync import nearest, pose_at
 
-KINDS = ("auto", "replica", "tum", "posetxt", "redwood")
+KINDS = ("auto", "replica", "tum", "nyu", "nyu_labelled", "posetxt", "redwood")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
 
 
@@ -65,7 +71,7 @@ PRESETS: dict[str, Preset] = {
     "redwood": Preset("scale", 1000.0, (525.0, 525.0, 319.5, 239.5)),
     "sun": Preset("sun_rotated", 1000.0, (525.0, 525.0, 319.5, 239.5)),
 }
-DEFAULT_PRESET = {"replica": "replica", "tum": "tum", "posetxt": "kinect",
+DEFAULT_PRESET = {"replica": "replica", "tum": "tum", "nyu": "nyu", "posetxt": "kinect",
                   "redwood": "redwood"}
 
 
@@ -329,9 +335,46 @@ def _as_lookup(id_map: Any) -> np.ndarray | None:
     return lut
 
 
+NYU13_MARKER = "semantic_nyu13.txt"
+"""Written by :func:`write_replica`: its ``semantic_class/`` images already hold NYU-13 ids."""
+
+
+def _replica_lookup(folder: Path, id_map: Any, semantic_ids: str,
+                    class_info: str | Path | None) -> np.ndarray | None:
+    """How a Replica folder's ``semantic_class`` ids become NYU-13 (None: they already are)."""
+    from . import replica_classes as rc
+
+    if semantic_ids not in ("auto", "nyu13", "replica"):
+        raise FormatError(f"semantic_ids must be auto, nyu13 or replica, got {semantic_ids!r}")
+    if id_map is not None:
+        return _as_lookup(id_map)
+    if semantic_ids == "nyu13" or (semantic_ids == "auto" and (folder / NYU13_MARKER).is_file()):
+        return None
+    info = Path(class_info) if class_info else rc.find_class_info(folder)
+    if info is None:
+        raise FormatError(f"{folder}: semantic_class/ holds Replica class ids, but no "
+                          "info_semantic.json was found beside it or in semantic_info/<scene>/ "
+                          "above it; pass class_info=<path to the scene's info_semantic.json>, "
+                          "or semantic_ids=nyu13 if the images already hold NYU-13 ids")
+    try:
+        return rc.lookup_table(info)
+    except rc.ReplicaClassError as err:
+        raise FormatError(str(err)) from None
+
+
 def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
-                 id_map: Any = None) -> Iterator[Frame]:
-    """Semantic-NeRF Replica layout -> Frames (semantic remapped by ``id_map`` if given)."""
+                 id_map: Any = None, semantic_ids: str = "auto",
+                 class_info: str | Path | None = None) -> Iterator[Frame]:
+    """Semantic-NeRF Replica layout -> Frames with NYU-13 ground truth.
+
+    ``semantic_class/`` ids become NYU-13 by ``id_map`` if given, else by the
+    shipped Replica -> NYU-13 mapping (:mod:`.replica_classes`) with the scene's
+    ``info_semantic.json`` (found, or ``class_info``); folders written by
+    :func:`write_replica` hold NYU-13 already (``semantic_ids="nyu13"`` says so
+    for other folders).
+    """
+    from . import replica_classes as rc
+
     folder = Path(folder)
     fmt, scale, intr_vals = _resolve(cfg, "replica")
     poses = read_matrix_rows(folder / "traj_w_c.txt")
@@ -346,7 +389,7 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
                           "rgb images")
     stamps = _replica_stamps(folder, len(poses), cfg)
     cam_file = folder / "intrinsics.json"
-    lut = _as_lookup(id_map)
+    lut = _replica_lookup(folder, id_map, semantic_ids, class_info) if sems else None
     for i in _subsample(sorted(rgbs), cfg):
         if i not in depths:
             raise FormatError(f"{folder}: depth/depth_{i}.png missing")
@@ -363,7 +406,10 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
             intr = Intrinsics.from_hfov(w, h, cfg.hfov_deg)
         sem = read_labels(sems[i]) if i in sems else None
         if sem is not None and lut is not None:
-            sem = lut[sem]
+            try:
+                sem = rc.to_nyu13(sem, lut, str(sems[i]))
+            except rc.ReplicaClassError as err:
+                raise FormatError(str(err)) from None
         inst = read_labels(insts[i]) if i in insts else None
         yield _make_frame(stamps[i], rgb, depth, poses[i], intr, f"{folder} frame {i}",
                           sem, inst)
@@ -415,6 +461,9 @@ def write_replica(folder: str | Path, frames: Iterable[Frame], hfov_deg: float =
     rows, stamps, cam = [], [], None
     for i, fr in enumerate(frames):
         fr.validate()
+        if fr.pose is None:
+            raise FormatError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
+                              "convert --poses odometry)")
         h, w = fr.depth.shape
         _write_png(folder / "rgb" / f"rgb_{i}.png", fr.rgb[:, :, ::-1])
         d = np.where(np.isfinite(fr.depth) & (fr.depth > 0), np.round(fr.depth * 1000.0), 0)
@@ -434,6 +483,7 @@ def write_replica(folder: str | Path, frames: Iterable[Frame], hfov_deg: float =
                                   "Replica layout holds one camera")
             cam = fr.intrinsics
     (folder / "traj_w_c.txt").write_text("\n".join(rows) + "\n")
+    (folder / NYU13_MARKER).write_text("semantic_class/ holds NYU-13 ids (neurncd_ros)\n")
     (folder / "timestamps.txt").write_text("\n".join(stamps) + "\n")
     if cam is not None:
         (folder / "intrinsics.json").write_text(json.dumps(dataclasses.asdict(cam)))
@@ -498,37 +548,48 @@ def _tum_list(folder: Path, list_name: str, sub: str, prefixes: tuple[str, ...]
 
 
 def read_tum(folder: str | Path, cfg: FolderConfig = FolderConfig(),
-             trajectory: str | Path | None = None) -> Iterator[Frame]:
+             trajectory: str | Path | None = None, with_poses: bool = True,
+             kind: str = "tum") -> Iterator[Frame]:
     """TUM RGB-D style folder -> Frames, associating depth and pose by nearest time.
 
     Colour frames with no depth or pose within ``max_time_diff_s`` are skipped.
+    ``with_poses=False`` reads no trajectory and yields frames with pose None
+    (for the odometry: NYUv2 raw sequences have no poses).
     """
     folder = Path(folder)
-    fmt, scale, intr_vals = _resolve(cfg, "tum")
+    fmt, scale, intr_vals = _resolve(cfg, kind)
     nyu = fmt == "nyu_disparity"
     rgbs = _tum_list(folder, "rgb.txt", "rgb", ("r-",) if nyu else ())
     depths = _tum_list(folder, "depth.txt", "depth", ("d-",) if nyu else ())
     if not rgbs or not depths:
-        raise FormatError(f"{folder}: no colour/depth images found (rgb.txt + depth.txt or "
-                          "timestamp-named files in rgb/ and depth/)")
-    traj = Path(trajectory) if trajectory else folder / "groundtruth.txt"
-    ptimes, poses = read_tum_trajectory(traj)
+        raise FormatError(f"{folder}: no colour/depth images found (rgb.txt + depth.txt, "
+                          "timestamp-named files in rgb/ and depth/, or NYUv2 r-*.ppm and "
+                          "d-*.pgm)")
     dtimes = np.array([t for t, _ in depths], dtype=np.int64)
-    ptimes_ns = np.round(ptimes * 1e9).astype(np.int64)
     tol = int(round(cfg.max_time_diff_s * 1e9))
     gap = int(round(cfg.max_pose_gap_s * 1e9))
+    if with_poses:
+        traj = Path(trajectory) if trajectory else folder / "groundtruth.txt"
+        if not traj.is_file():
+            raise FormatError(f"{traj}: file not found; a sequence without poses needs "
+                              "poses estimated from its images (convert --poses odometry)")
+        ptimes, poses = read_tum_trajectory(traj)
+        ptimes_ns = np.round(ptimes * 1e9).astype(np.int64)
     pairs = []
     for t, rp in rgbs:
         kd, ed = nearest(dtimes, t)
-        try:
-            pose = pose_at(ptimes_ns, list(poses), t, tol, gap)
-        except LookupError:
-            continue
+        pose = None
+        if with_poses:
+            try:
+                pose = pose_at(ptimes_ns, list(poses), t, tol, gap)
+            except LookupError:
+                continue
         if ed <= tol:
             pairs.append((t, rp, depths[kd][1], pose))
     if not pairs:
-        raise FormatError(f"{folder}: no colour frame has depth and pose within "
-                          f"{cfg.max_time_diff_s} s")
+        raise FormatError(f"{folder}: no colour frame has depth" +
+                          (" and pose" if with_poses else "") +
+                          f" within {cfg.max_time_diff_s} s")
     for t, rp, dp, pose in _subsample(pairs, cfg):
         rgb = read_rgb(rp)
         depth = read_depth(dp, fmt, scale, cfg.max_depth_m)
@@ -545,6 +606,9 @@ def write_tum(folder: str | Path, frames: Iterable[Frame], depth_scale: float = 
     rgb_l, dep_l, gt_l = [], [], []
     for fr in frames:
         fr.validate()
+        if fr.pose is None:
+            raise FormatError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
+                              "convert --poses odometry)")
         t = f"{fr.stamp_ns // 1_000_000_000}.{fr.stamp_ns % 1_000_000_000:09d}"
         _write_png(folder / "rgb" / f"{t}.png", fr.rgb[:, :, ::-1])
         d = np.where(np.isfinite(fr.depth) & (fr.depth > 0), np.round(fr.depth * depth_scale),
@@ -663,36 +727,92 @@ def detect_kind(folder: str | Path) -> str:
         return "posetxt"
     if (f / "groundtruth.txt").is_file() or (f / "rgb.txt").is_file():
         return "tum"
+    if any(f.glob("r-*.ppm")) and any(f.glob("d-*.pgm")):
+        return "nyu"
     raise FormatError(f"{f}: unknown layout (expected traj_w_c.txt + rgb/ (replica), "
-                      "trajectory.log (redwood), pose.txt + color/ (posetxt), or "
-                      "groundtruth.txt / rgb.txt (tum))")
+                      "trajectory.log (redwood), pose.txt + color/ (posetxt), "
+                      "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")
 
 
 def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
-                trajectory: str | Path | None = None, **opts: Any) -> Iterator[Frame]:
+                trajectory: str | Path | None = None, with_poses: bool = True,
+                labelled: str | Path | None = None, class_mapping: str | Path | None = None,
+                semantic_ids: str = "auto", class_info: str | Path | None = None,
+                **opts: Any) -> Iterator[Frame]:
     """Frames of a dataset folder; ``opts`` are :class:`FolderConfig` fields.
 
     ``id_map`` remaps Replica semantic ids; ``trajectory`` overrides the TUM
-    pose file. Unknown options raise ConfigError (a ValueError) naming them.
+    pose file; ``with_poses=False`` lets TUM-style folders without a trajectory
+    (NYUv2 raw, kind "nyu", never has one) yield frames with pose None, for the
+    odometry. ``nyu_labelled`` (a ``.mat`` file, detected by its suffix) reads
+    NYUv2's labelled set (:mod:`.nyu`; ``class_mapping`` = classMapping40.mat if
+    not beside it); ``labelled`` attaches to a NYUv2 raw sequence the labelled
+    frames taken from it. Unknown options raise ConfigError (a ValueError) naming them.
     """
     if kind not in KINDS:
         raise FormatError(f"unknown folder kind {kind!r}; known: {', '.join(KINDS)}")
     cfg = build(FolderConfig, opts)
     path = Path(path)
     if not path.exists():
-        raise FormatError(f"{path}: no such folder")
+        raise FormatError(f"{path}: no such file or folder")
+    if kind == "nyu_labelled" or (kind == "auto" and path.is_file() and
+                                  path.suffix.lower() == ".mat"):
+        from .nyu import read_labelled
+        return read_labelled(path, class_mapping, stride=cfg.stride,
+                             max_frames=cfg.max_frames, fps=cfg.fps,
+                             start_stamp_ns=cfg.start_stamp_ns)
     kind = detect_kind(path) if kind == "auto" else kind
+    if labelled is not None:
+        if kind != "nyu":
+            raise FormatError(f"{path}: labelled applies to NYUv2 raw sequences, this is "
+                              f"{kind!r}")
+        from .nyu import raw_labels
+        labels = raw_labels(labelled, class_mapping)
+        frames = read_tum(path, cfg, trajectory, with_poses, kind="nyu")
+        return _attach_nyu_labels(frames, labels, path)
     if id_map is not None and kind != "replica":
         raise FormatError(f"{path}: id_map applies to Replica folders, this is {kind!r}")
-    if trajectory is not None and kind != "tum":
+    if trajectory is not None and kind not in ("tum", "nyu"):
         raise FormatError(f"{path}: trajectory applies to TUM folders, this is {kind!r}")
+    if kind == "nyu":
+        if with_poses and trajectory is None:
+            raise FormatError(f"{path}: a NYUv2 raw sequence has no camera poses; estimate "
+                              "them from its images (convert --poses odometry)")
+        return read_tum(path, cfg, trajectory, with_poses, kind="nyu")
     if kind == "replica":
-        return read_replica(path, cfg, id_map)
+        return read_replica(path, cfg, id_map, semantic_ids, class_info)
     if kind == "tum":
-        return read_tum(path, cfg, trajectory)
+        return read_tum(path, cfg, trajectory, with_poses)
     if kind == "posetxt":
         return read_posetxt(path, cfg)
     return read_redwood(path, cfg)
+
+
+def _attach_nyu_labels(frames: Iterator[Frame], labels: dict[str, np.ndarray], where: Path
+                       ) -> Iterator[Frame]:
+    """Give each raw frame whose colour file is in the labelled set that frame's labels.
+
+    Raw NYUv2 files are named by their stamp (``r-<seconds>-<n>.ppm``), so the
+    labelled frames are matched to raw frames by stamp."""
+    import dataclasses as dc
+
+    by_stamp = {}
+    for name, sem in labels.items():
+        t = _stamp_of(name[2:]) if name.startswith("r-") else None
+        if t is not None:
+            by_stamp[t] = sem
+    have = {t for t, _ in _tum_list(where, "rgb.txt", "rgb", ("r-",))}
+    if not have & set(by_stamp):
+        raise FormatError(f"{where}: none of its colour files is in the labelled set")
+    for fr in frames:
+        sem = by_stamp.get(fr.stamp_ns)
+        if sem is not None:
+            if sem.shape != fr.depth.shape:
+                raise FormatError(f"{where}: labelled frame at stamp {fr.stamp_ns} is "
+                                  f"{sem.shape[1]}x{sem.shape[0]}, the raw frame "
+                                  f"{fr.depth.shape[1]}x{fr.depth.shape[0]}")
+            fr = dc.replace(fr, semantic=sem)
+        yield fr
 
 
 def is_bag(path: str | Path) -> bool:
@@ -704,28 +824,50 @@ def is_bag(path: str | Path) -> bool:
 
 def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str = "mcap",
             tf_parent: str | None = None, tf_child: str | None = None,
-            to: str = "bag", progress: bool = False, **opts: Any) -> int:
+            to: str = "bag", progress: bool = False, poses: str = "source",
+            odometry: Any = None, report: dict | None = None, **opts: Any) -> int:
     """Convert a dataset folder or a bag into a bag (or a Replica / TUM folder).
 
     A bag source may carry its pose on /tf (give ``tf_parent``/``tf_child``).
+    ``poses="odometry"`` ignores the source's poses (it need have none) and
+    writes poses estimated from the images (``odometry``: an OdometryConfig);
+    frames where tracking is lost are left out and counted in ``report``
+    (a dict that receives ``frames_in``, ``lost``, ``segments``, ``relocalised``).
     ``opts`` go to :func:`read_folder` (folder sources) or the bag writer's
     encoding choices (``depth_encoding``, ``color_encoding``). Returns frames written.
     """
     from . import bag as bagio
 
+    if poses not in ("source", "odometry"):
+        raise FormatError(f"poses must be 'source' or 'odometry', got {poses!r}")
+    if to not in ("bag", "replica", "tum"):
+        raise FormatError(f"unknown output kind {to!r}; known: bag, replica, tum")
+    estimate = poses == "odometry"
     writer_opts = {k: opts.pop(k) for k in ("depth_encoding", "color_encoding") if k in opts}
     if is_bag(src):
         if opts:
             raise FormatError(f"options {sorted(opts)} apply to folders, not to bag {src}")
         frames: Iterable[Frame] = bagio.FrameReader(src, tf_parent=tf_parent,
-                                                    tf_child=tf_child)
+                                                    tf_child=tf_child,
+                                                    with_poses=not estimate)
     else:
-        frames = read_folder(src, kind, **opts)
+        if estimate and (kind == "nyu_labelled" or Path(src).suffix.lower() == ".mat"):
+            raise FormatError(f"{src}: the labelled frames are single views of many scenes; "
+                              "odometry needs a sequence (convert the raw sequence instead)")
+        frames = read_folder(src, kind, with_poses=not estimate, **opts)
+    results: list = []
+    if estimate:
+        from ..odometry import with_odometry
+        frames = with_odometry(frames, odometry, results)
     if to == "bag":
-        return bagio.write_bag(out, frames, storage=storage, progress=progress, **writer_opts)
-    if to == "replica":
-        return write_replica(out, frames)
-    if to == "tum":
-        return write_tum(out, frames)
-    raise FormatError(f"unknown output kind {to!r}; known: bag, replica, tum")
-
+        n = bagio.write_bag(out, frames, storage=storage, progress=progress, **writer_opts)
+    elif to == "replica":
+        n = write_replica(out, frames)
+    else:
+        n = write_tum(out, frames)
+    if report is not None and estimate:
+        report.update({"frames_in": len(results),
+                       "lost": sum(r.status == "lost" for r in results),
+                       "relocalised": sum(r.status == "relocalised" for r in results),
+                       "segments": 1 + sum(r.status == "new_segment" for r in results)})
+    return n

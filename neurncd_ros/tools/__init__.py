@@ -1,0 +1,1 @@
+"""Command-line tools of `neurncd` that pick data sources for the core (outside the core)."""
