@@ -5,7 +5,10 @@ node in its own process (the field's training and the backbone do not share a
 GIL), all with one parameter file:
 
 - a node that exits stops the others (bringup exits with its code);
-- with ``--bag``, when the replay reaches the end of the bag (exit 0) the
+- with ``--bag``, the replay starts once every node reports on /diagnostics
+  (it is up and subscribed; at most ``--ready-timeout``), so nothing the bag
+  holds is published before a node can take it; when the replay reaches the
+  end of the bag (exit 0) the
   nodes keep running until they have labelled what they received: until
   every node reports nothing pending on /diagnostics (or ``--drain-timeout``);
   then all are stopped and bringup exits 0 (a replay that fails, e.g. on a
@@ -89,6 +92,11 @@ class DrainWatcher:
                 with self._lock:
                     self._latest[name] = (now, int(values.get("pending", "1") or 1))
 
+    def ready(self) -> bool:
+        """Every node has reported at least once (it is up, its subscriptions made)."""
+        with self._lock:
+            return all(name in self._latest for name in NODES)
+
     def drained_since(self, t0: float) -> bool:
         """Every node reported pending 0 in a status received after ``t0``."""
         with self._lock:
@@ -127,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--params-file", default=str(share_file("config", "neurncd.yaml")),
                         help="ROS 2 parameter file (default: the shipped config/neurncd.yaml)")
     parser.add_argument("--bag", default=None, help="bag to replay into the nodes")
+    parser.add_argument("--ready-timeout", type=float, default=180.0,
+                        help="with --bag, wait at most this long (s) for the nodes to come "
+                        "up before the replay starts")
     parser.add_argument("--drain-timeout", type=float, default=120.0,
                         help="after the bag ends, wait at most this long (s) for the nodes "
                         "to finish what they received")
@@ -148,12 +159,20 @@ def main(argv: list[str] | None = None) -> int:
 
     topic = config_mod.load(args.params_file).topics.diagnostics
     watcher = DrainWatcher(topic)
-    procs = {name: subprocess.Popen(cmd, preexec_fn=_child_setup)
-             for name, cmd in build_commands(args.params_file, args.bag, ros_args).items()}
+    cmds = build_commands(args.params_file, args.bag, ros_args)
+    replay_cmd = cmds.pop("replay", None)
+    procs = {name: subprocess.Popen(cmd, preexec_fn=_child_setup) for name, cmd in cmds.items()}
     code = 0
     drain_from: float | None = None
+    ready_by = time.monotonic() + args.ready_timeout
     try:
         while not shutdown.requested.is_set():
+            if replay_cmd is not None and (watcher.ready() or time.monotonic() > ready_by):
+                if not watcher.ready():
+                    print(f"bringup: not every node is up after {args.ready_timeout:g} s: "
+                          "replaying anyway", file=sys.stderr)
+                procs["replay"] = subprocess.Popen(replay_cmd, preexec_fn=_child_setup)
+                replay_cmd = None
             time.sleep(0.2)
             dead = [(n, p.returncode) for n, p in procs.items()
                     if n != "replay" and p.poll() is not None]
