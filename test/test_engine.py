@@ -17,7 +17,7 @@ from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
 from neurncd_ros.core.engine import health as H
 from neurncd_ros.core.engine.discovery import DiscoveryStage, ViewInput
 from neurncd_ros.core.engine.embedding import EmbeddingNodeConfig, EmbeddingStage
-from neurncd_ros.core.engine.mapping import MapperNodeConfig, MapperStage, resize_to
+from neurncd_ros.core.engine.mapping import MapperStage, resize_to
 from neurncd_ros.core.engine.offline import OfflineEngine, mapper_factory
 from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
 

@@ -171,3 +171,17 @@ def test_bad_parameter_stops_node_with_clear_message(args, expect):
     assert r.returncode == 2, r.stdout + r.stderr
     assert expect in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_node_health_logs_every_severity_from_one_logger(ros_node):
+    """Problems of every level through the same Health: rclpy must accept each of them
+    (it refuses a call site whose severity changes, which once stopped the mapper)."""
+    from neurncd_ros.core.engine.health import Health
+    from neurncd_ros.nodes.common import ros_logger
+
+    node, _ = ros_node
+    h = Health("x", ros_logger(node), throttle_s=0.0)
+    for level in (1, 0, 2, 0, 1):
+        h.problem(f"kind{level}", f"a problem at level {level}", level)
+    h.fail("training", "thread died")
+    assert h.problems["kind0"] == 2 and h.failed

@@ -12,7 +12,6 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 NODES = ("embedding", "mapper", "discovery", "replay", "bringup")

@@ -12,7 +12,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .camera import matrix_to_quat, pose_from_tq
+from .camera import invert_pose, matrix_to_quat, pose_from_tq
+from .msgconv import MessageError, pose_to_matrix, stamp_to_ns
 
 
 def nearest(times: np.ndarray, t: int) -> tuple[int, int]:
@@ -217,3 +218,87 @@ class StampSync:
                 continue
             i += 1
         return out
+
+
+class TfBuffer:
+    """Transforms from /tf (time-stamped) and /tf_static, composed along the tree.
+
+    Filled with tf2_msgs/TFMessage-like messages (duck-typed: rosbags messages
+    offline, rclpy ones online) in any order; a lookup interpolates or takes the
+    nearest sample of each edge (:func:`pose_at`). ``horizon_ns`` > 0 keeps only
+    that much history per edge behind its newest sample (a live buffer stays
+    bounded); 0 keeps everything (a bag read once).
+    """
+
+    def __init__(self, horizon_ns: int = 0) -> None:
+        import collections
+
+        self.horizon_ns = int(horizon_ns)
+        self.parent: dict[str, str] = {}
+        self.static: dict[str, np.ndarray] = {}                # child -> T_parent_child
+        self.dynamic: dict[str, list[tuple[int, np.ndarray | str]]] = \
+            collections.defaultdict(list)                      # child -> [(stamp, T or error)]
+        self._times: dict[str, np.ndarray] = {}
+        self._dirty: set[str] = set()
+
+    def add(self, msg: Any, static: bool) -> None:
+        for ts in msg.transforms:
+            parent, child = ts.header.frame_id.lstrip("/"), ts.child_frame_id.lstrip("/")
+            self.parent.setdefault(child, parent)
+            try:
+                T: np.ndarray | str = pose_to_matrix(ts)
+            except MessageError as err:
+                T = str(err)
+            if static:
+                if isinstance(T, np.ndarray):
+                    self.static[child] = T
+            else:
+                self.dynamic[child].append((stamp_to_ns(ts.header.stamp), T))
+                self._dirty.add(child)
+
+    def _sorted(self, child: str) -> np.ndarray | None:
+        if child in self._dirty:
+            items = self.dynamic[child]
+            items.sort(key=lambda x: x[0])
+            if self.horizon_ns > 0 and items:
+                newest = items[-1][0]
+                items[:] = [e for e in items if e[0] >= newest - self.horizon_ns]
+            self._times[child] = np.array([s for s, _ in items], dtype=np.int64)
+            self._dirty.discard(child)
+        return self._times.get(child)
+
+    def frames(self) -> set[str]:
+        return set(self.parent) | set(self.parent.values())
+
+    def _chain(self, frame: str) -> list[str]:
+        out = [frame]
+        while out[-1] in self.parent and len(out) < 64:
+            out.append(self.parent[out[-1]])
+        return out
+
+    def _edge(self, child: str, stamp: int, skew: int, max_gap: int) -> np.ndarray:
+        if child in self.static:
+            return self.static[child]
+        times = self._sorted(child)
+        if times is None or times.size == 0:
+            raise LookupError(f"no transform for frame {child!r}")
+        try:
+            return pose_at(times, [T for _, T in self.dynamic[child]], stamp, skew, max_gap)
+        except LookupError as err:
+            raise LookupError(f"transform {self.parent[child]}->{child}: {err}") from None
+
+    def lookup(self, parent: str, child: str, stamp: int, skew: int, max_gap: int = 0
+               ) -> np.ndarray:
+        """T_parent_child at ``stamp`` (per edge: exact, interpolated or nearest, see pose_at)."""
+        up_c, up_p = self._chain(child), self._chain(parent)
+        common = next((f for f in up_c if f in up_p), None)
+        if common is None:
+            raise LookupError(f"frames {parent!r} and {child!r} are not connected in /tf")
+
+        def to_root(chain: list[str]) -> np.ndarray:
+            T = np.eye(4)
+            for f in chain[: chain.index(common)]:
+                T = self._edge(f, stamp, skew, max_gap) @ T
+            return T
+
+        return invert_pose(to_root(up_p)) @ to_root(up_c)

@@ -134,9 +134,22 @@ class Shutdown:
 
 
 def ros_logger(node: Any):
-    """A Health logger writing to the node's ROS logger."""
+    """A Health logger writing to the node's ROS logger.
+
+    One call site per severity: rclpy remembers the severity of each call site
+    and refuses ("Logger severity cannot be changed between calls") a site that
+    logs at another one.
+    """
     logger = node.get_logger()
-    return lambda level, text: (logger.info, logger.warning, logger.error)[level](text)
+
+    def log(level: int, text: str) -> None:
+        if level <= 0:
+            logger.info(text)
+        elif level == 1:
+            logger.warning(text)
+        else:
+            logger.error(text)
+    return log
 
 
 def run_node(factory: Callable[[], Any], name: str, description: str,

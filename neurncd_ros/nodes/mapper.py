@@ -21,6 +21,7 @@ import torch
 from ..core import msgconv
 from ..core.engine.health import Health  # before rclpy: scipy/torch load first
 from ..core.engine.mapping import MapperStage
+from ..core.engine.poses import PoseStage
 from ..core.engine.offline import mapper_factory
 from ..core.engine.records import EmbeddingRecord, EmbeddingSpec
 from ..core.engine.worker import Worker
@@ -36,7 +37,6 @@ DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and pub
 
 
 def make_node():
-    import torch
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.node import Node
@@ -55,6 +55,14 @@ def make_node():
                 torch.set_num_threads(self.cfg.mapper.num_threads)
             self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
             self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
+            try:
+                from tf2_msgs.msg import TFMessage
+            except ImportError:  # no tf2_msgs wheel on PyPI: /tf cannot be subscribed
+                TFMessage = None
+            self.poses = PoseStage(self.node_cfg, self.cfg.odometry, self.topics, self.health,
+                                   tf_available=TFMessage is not None)
+            self.pub_pose = None
+            self._segment = 0
             self.exit_code = 0
             self.spec: EmbeddingSpec | None = None
             path = self.node_cfg.map_path
@@ -69,6 +77,11 @@ def make_node():
             self.create_subscription(Image, self.topics.color, self.on_color, q)
             self.create_subscription(Image, self.topics.depth, self.on_depth, q)
             self.create_subscription(PoseStamped, self.topics.pose, self.on_pose, q)
+            if TFMessage is not None:
+                self.create_subscription(TFMessage, self.topics.tf,
+                                         lambda m: self.on_tf(m, False), q)
+                self.create_subscription(TFMessage, self.topics.tf_static,
+                                         lambda m: self.on_tf(m, True), latched_qos())
             self.create_subscription(Image, self.topics.embedding, self.on_embedding,
                                      view_qos(self.node_cfg.queue_size))
             self.create_subscription(CameraInfo, self.topics.camera_info, self.on_info,
@@ -104,28 +117,66 @@ def make_node():
                 self.health.problem(f"bad_{kind}", f"{kind} message skipped: {err}")
                 return None
 
-        def _offer(self, stream: str, msg, value) -> None:
+        def _offer(self, stream: str, stamp: int, value) -> None:
             if value is None:
                 return
-            for job in self.stage.offer(stream, header_ns(msg), value):
+            for job in self.stage.offer(stream, stamp, value):
                 if job.keyframe:
                     self.pub_keyframes.publish(pose_msg(job.frame.pose, job.frame.stamp_ns,
                                                         self.topics.world_frame))
             self.worker.notify()
 
+        def _offer_poses(self, poses) -> None:
+            """Poses from the pose stage to the mapper stage (and out, from tf/odometry)."""
+            for stamp, T in poses:
+                if self.poses.publishes:
+                    if self.pub_pose is None:
+                        self.pub_pose = self.create_publisher(PoseStamped, self.topics.pose,
+                                                              view_qos(10))
+                    self.pub_pose.publish(pose_msg(T, stamp, self.topics.world_frame))
+                self._check_segment()
+                self._offer("pose", stamp, T)
+
+        def _check_segment(self) -> None:
+            odo = self.poses.odometry
+            if odo is not None and odo.segment != self._segment:
+                self._segment = odo.segment
+                if self.stage.mapper is not None:
+                    self.health.problem("new_segment", "odometry lost track for too long and "
+                                        "started a new map segment: the field restarts")
+                    self.stage.mapper.reset()
+
+        def _image(self, stream: str, msg, value) -> None:
+            if value is None:
+                return
+            self._offer(stream, header_ns(msg), value)
+            self._offer_poses(self.poses.offer_image(stream, header_ns(msg), value,
+                                                     self.stage.intrinsics))
+
         def on_color(self, msg) -> None:
-            self._offer("color", msg, self._convert("colour", msgconv.rgb_from_image, msg,
+            self._image("color", msg, self._convert("colour", msgconv.rgb_from_image, msg,
                                                     self.topics.color))
 
         def on_depth(self, msg) -> None:
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id
-            self._offer("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
+            self._image("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
                                                     self.topics.depth))
 
         def on_pose(self, msg) -> None:
-            self._offer("pose", msg, self._convert("pose", msgconv.pose_to_matrix, msg,
-                                                   self.topics.pose))
+            if self.pub_pose is not None:
+                return  # our own poses (tf/odometry) echoed back
+            pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose)
+            if pose is not None:
+                self._offer_poses(self.poses.offer_pose(header_ns(msg), pose))
+
+        def on_tf(self, msg, static: bool) -> None:
+            try:
+                poses = self.poses.offer_tf(msg, static)
+            except ValueError as err:
+                self.health.problem("bad_tf", f"{self.topics.tf}: message skipped: {err}")
+                return
+            self._offer_poses(poses)
 
         def on_info(self, msg) -> None:
             intr = self._convert("camera_info", msgconv.camera_info_to_intrinsics, msg,
@@ -162,7 +213,7 @@ def make_node():
                 self.health.problem("bad_embedding", f"embedding skipped: {err}")
                 return
             stamp = header_ns(msg)
-            self._offer("embedding", msg, EmbeddingRecord(stamp, arr, self.spec))
+            self._offer("embedding", stamp, EmbeddingRecord(stamp, arr, self.spec))
 
         def on_labels(self, msg) -> None:
             self.stage.labelled(header_ns(msg))

@@ -29,10 +29,10 @@ from ..msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsi
                         depth_fields, depth_from_image, image_fields, image_to_array,
                         matrix_to_pose_fields, ns_to_stamp, pose_to_matrix, rgb_from_image,
                         stamp_to_ns)
-from ..camera import Intrinsics, check_pose, invert_pose
+from ..camera import Intrinsics, check_pose
 from ..frame import Frame
 from ..params import param
-from ..sync import nearest, pose_at
+from ..sync import TfBuffer, nearest, pose_at
 from ..topics import Topics
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -357,71 +357,6 @@ def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     return sec * 1_000_000_000 + nsec, h, w
 
 
-# ---------------------------------------------------------------- tf buffer
-
-class TfBuffer:
-    """Transforms from /tf (time-stamped) and /tf_static, composed along the tree."""
-
-    def __init__(self) -> None:
-        self.parent: dict[str, str] = {}
-        self.static: dict[str, np.ndarray] = {}                # child -> T_parent_child
-        self.dynamic: dict[str, list[tuple[int, np.ndarray | str]]] = \
-            collections.defaultdict(list)                      # child -> [(stamp, T or error)]
-
-    def add(self, msg: Any, static: bool) -> None:
-        for ts in msg.transforms:
-            parent, child = ts.header.frame_id.lstrip("/"), ts.child_frame_id.lstrip("/")
-            self.parent.setdefault(child, parent)
-            try:
-                T: np.ndarray | str = pose_to_matrix(ts)
-            except MessageError as err:
-                T = str(err)
-            if static:
-                if isinstance(T, np.ndarray):
-                    self.static[child] = T
-            else:
-                self.dynamic[child].append((stamp_to_ns(ts.header.stamp), T))
-
-    def finish(self) -> None:
-        self._times = {}
-        for child, items in self.dynamic.items():
-            items.sort(key=lambda x: x[0])
-            self._times[child] = np.array([s for s, _ in items], dtype=np.int64)
-
-    def _chain(self, frame: str) -> list[str]:
-        out = [frame]
-        while out[-1] in self.parent and len(out) < 64:
-            out.append(self.parent[out[-1]])
-        return out
-
-    def _edge(self, child: str, stamp: int, skew: int, max_gap: int) -> np.ndarray:
-        if child in self.static:
-            return self.static[child]
-        times = self._times.get(child)
-        if times is None or times.size == 0:
-            raise LookupError(f"no transform for frame {child!r}")
-        try:
-            return pose_at(times, [T for _, T in self.dynamic[child]], stamp, skew, max_gap)
-        except LookupError as err:
-            raise LookupError(f"transform {self.parent[child]}->{child}: {err}") from None
-
-    def lookup(self, parent: str, child: str, stamp: int, skew: int, max_gap: int = 0
-               ) -> np.ndarray:
-        """T_parent_child at ``stamp`` (per edge: exact, interpolated or nearest, see pose_at)."""
-        up_c, up_p = self._chain(child), self._chain(parent)
-        common = next((f for f in up_c if f in up_p), None)
-        if common is None:
-            raise LookupError(f"frames {parent!r} and {child!r} are not connected in /tf")
-
-        def to_root(chain: list[str]) -> np.ndarray:
-            T = np.eye(4)
-            for f in chain[: chain.index(common)]:
-                T = self._edge(f, stamp, skew, max_gap) @ T
-            return T
-
-        return invert_pose(to_root(up_p)) @ to_root(up_c)
-
-
 # ---------------------------------------------------------------- FrameReader
 
 @dataclasses.dataclass
@@ -540,7 +475,6 @@ class FrameReader:
                     tfbuf.add(msg, static=topic == tp.tf_static)
         finally:
             reader.close()
-        tfbuf.finish()
         self._plan_frames(heads, infos, poses, tfbuf)
 
     def _plan_frames(self, heads: dict, infos: list, poses: list, tfbuf: TfBuffer) -> None:

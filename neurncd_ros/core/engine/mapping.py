@@ -93,6 +93,16 @@ class MapperNodeConfig:
     max_queued_keyframes: int = param(64, "keyframe views waiting to be rendered at most "
                                       "(beyond, the oldest is dropped with a warning)",
                                       lo=1, hi=10000)
+    pose_source: str = param("auto", "where camera poses come from: the pose topic, /tf "
+                             "(world_frame -> camera_frame), RGB-D odometry on the frames, or "
+                             "auto: the first of them that shows up (see core/engine/poses.py)",
+                             choices=("auto", "topic", "tf", "odometry"))
+    pose_auto_wait_s: float = param(3.0, "pose_source auto: seconds of frames without a pose "
+                                    "topic or /tf before odometry is chosen", lo=0.0,
+                                    hi=3600.0, unit="s")
+    tf_max_gap_ms: float = param(100.0, "pose_source tf: interpolate each /tf edge between "
+                                 "samples at most this far apart", lo=0.0, hi=10000.0,
+                                 unit="ms")
     sync_tolerance_ms: float = param(20.0, "max stamp difference between colour, depth, pose "
                                      "and embedding", lo=0.0, hi=1000.0, unit="ms")
     sync_horizon_s: float = param(2.0, "how long a colour, depth or pose waits for its "

@@ -1,0 +1,171 @@
+"""Pose stage: a camera pose for every frame, whether or not the input carries one.
+
+``mapper_node.pose_source`` picks where poses come from:
+
+- ``topic``: geometry_msgs/PoseStamped on ``topics.pose`` (camera-to-world);
+- ``tf``: /tf and /tf_static, looked up as ``topics.world_frame`` ->
+  ``topics.camera_frame`` at each frame's stamp (edges interpolated within
+  ``tf_max_gap_ms``);
+- ``odometry``: RGB-D odometry on the frames themselves (:mod:`..odometry`),
+  every colour+depth pair tracked frame to keyframe; losses are reported with
+  their reason and the frames they cover get no pose (they are skipped, never
+  placed wrongly);
+- ``auto``: the first of these that shows up: a pose topic publisher, then a
+  /tf tree linking the two frames, else odometry once ``auto_wait_s`` of frames
+  passed without either. The choice is logged once and kept.
+
+With tf or odometry the node publishes the poses on ``topics.pose`` for the
+other nodes (and the user); with ``topic`` it publishes nothing.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..sync import StampSync, TfBuffer
+from .health import Health, sync_reporter
+
+SOURCES = ("auto", "topic", "tf", "odometry")
+
+
+class PoseStage:
+    """Turns pose messages, /tf or the images into (stamp, camera-to-world) pairs."""
+
+    def __init__(self, node_cfg, odometry_cfg, topics, health: Health,
+                 clock: Callable[[], float] = time.monotonic, tf_available: bool = True
+                 ) -> None:
+        self.cfg = node_cfg
+        self.odometry_cfg = odometry_cfg
+        self.topics = topics
+        self.health = health
+        self._clock = clock
+        source = node_cfg.pose_source
+        if source == "tf" and not tf_available:
+            raise ValueError("mapper_node.pose_source 'tf' needs the tf2_msgs message package, "
+                             "which this ROS install lacks (there is no PyPI wheel of it): "
+                             "use pose_source 'topic' or 'odometry', or convert the bag with "
+                             "`neurncd convert --kind bag --tf-parent ... --tf-child ...`")
+        self.tf_available = tf_available
+        self.mode: str | None = None if source == "auto" else source
+        self.tf = TfBuffer(horizon_ns=int(10e9))
+        self._tf_pending: list[int] = []
+        self.sync = StampSync(("depth", "color"), int(node_cfg.sync_tolerance_ms * 1e6),
+                              node_cfg.sync_horizon_s, capacity=max(4, node_cfg.queue_size),
+                              clock=clock, on_anomaly=sync_reporter(health))
+        self.odometry = None
+        self._first_frame: float | None = None
+        self._topic_seen = False
+        if self.mode is not None:
+            self.health.gauge("pose_source", self.mode)
+
+    @property
+    def publishes(self) -> bool:
+        """The node should publish the poses it gets from here on ``topics.pose``."""
+        return self.mode in ("tf", "odometry")
+
+    # ------------------------------------------------------------ choosing
+    def _decide(self) -> str | None:
+        if self.mode is not None:
+            return self.mode
+        if self._topic_seen:
+            mode = "topic"
+        elif self.tf_available and self._tf_links():
+            mode = "tf"
+        elif (self._first_frame is not None
+              and self._clock() - self._first_frame >= self.cfg.pose_auto_wait_s):
+            mode = "odometry"
+        else:
+            return None
+        self.mode = mode
+        self.health.gauge("pose_source", mode)
+        self.health.problem("pose_source", f"pose source: {mode} (pose_source auto)", level=0)
+        return mode
+
+    def _tf_links(self) -> bool:
+        frames = self.tf.frames()
+        if self.topics.world_frame not in frames or self.topics.camera_frame not in frames:
+            return False
+        try:
+            chain_c, chain_w = self.tf._chain(self.topics.camera_frame), self.tf._chain(
+                self.topics.world_frame)
+        except KeyError:
+            return False
+        return any(f in chain_w for f in chain_c)
+
+    # ------------------------------------------------------------ inputs
+    def offer_pose(self, stamp_ns: int, pose: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        """A pose message from another publisher."""
+        self._topic_seen = True
+        return [(stamp_ns, pose)] if self._decide() == "topic" else []
+
+    def offer_tf(self, msg: Any, static: bool) -> list[tuple[int, np.ndarray]]:
+        """A TFMessage; poses of frames that were waiting for it."""
+        self.tf.add(msg, static)
+        if self._decide() != "tf":
+            return []
+        return self._lookup_pending()
+
+    def offer_image(self, stream: str, stamp_ns: int, image: np.ndarray,
+                    intrinsics: Intrinsics | None) -> list[tuple[int, np.ndarray]]:
+        """Colour (rgb) or depth (m) of a frame; the poses this completes."""
+        if self._first_frame is None:
+            self._first_frame = self._clock()
+        mode = self._decide()
+        if mode == "topic":
+            return []
+        if mode == "tf":
+            if stream == "depth":
+                self._tf_pending.append(int(stamp_ns))
+                return self._lookup_pending()
+            return []
+        # odometry, or still undecided: track anyway, so a late decision loses nothing
+        out = []
+        for stamp, g in self.sync.add(stream, stamp_ns, image):
+            pose = self._track(stamp, g["color"], g["depth"], intrinsics)
+            if pose is not None and self._decide() == "odometry":
+                out.append((stamp, pose))
+        return out
+
+    # ------------------------------------------------------------ sources
+    def _lookup_pending(self) -> list[tuple[int, np.ndarray]]:
+        out, keep = [], []
+        skew = int(self.cfg.sync_tolerance_ms * 1e6)
+        gap = int(self.cfg.tf_max_gap_ms * 1e6)
+        newest = max(self._tf_pending, default=0)
+        for stamp in self._tf_pending:
+            try:
+                out.append((stamp, self.tf.lookup(self.topics.world_frame,
+                                                  self.topics.camera_frame, stamp, skew, gap)))
+            except LookupError as err:
+                if newest - stamp > int(self.cfg.sync_horizon_s * 1e9):
+                    self.health.problem("no_tf", f"frame {stamp} has no pose: {err}")
+                else:
+                    keep.append(stamp)
+        self._tf_pending = keep[-4 * self.cfg.queue_size:]
+        return out
+
+    def _track(self, stamp: int, rgb: np.ndarray, depth: np.ndarray,
+               intrinsics: Intrinsics | None) -> np.ndarray | None:
+        if intrinsics is None:
+            self.health.problem("no_camera_info", f"frame {stamp} not tracked: no camera "
+                                "info received yet")
+            return None
+        if self.odometry is None:
+            from ..odometry import RGBDOdometry
+            self.odometry = RGBDOdometry(self.odometry_cfg)
+        try:
+            result = self.odometry.track(stamp, rgb, depth, intrinsics)
+        except ValueError as err:
+            self.health.problem("odometry_input", f"frame {stamp} not tracked: {err}")
+            return None
+        self.health.count(f"odometry_{result.status}")
+        if result.status != "ok":
+            level = 1 if result.pose is None else 0
+            self.health.problem(f"tracking_{result.status}",
+                                f"odometry {result.status} at frame {stamp}: {result.reason}",
+                                level=level)
+        return result.pose

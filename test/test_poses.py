@@ -1,0 +1,162 @@
+"""Poses for the mapper whatever the input carries: pose topic, /tf, or RGB-D odometry
+(the pose stage), in one process and over DDS with the nodes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from neurncd_ros import config, synth
+from neurncd_ros.core.camera import invert_pose, pose_distance
+from neurncd_ros.core.data.bag import tf_msg
+from neurncd_ros.core.engine.health import Health
+from neurncd_ros.core.engine.poses import PoseStage
+
+MS = 1_000_000
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return list(synth.generate(1002, 30, synth.SynthConfig(width=160, height=120)))
+
+
+def _stage(source: str, clock=None, tf_available: bool = True) -> PoseStage:
+    cfg = config.default()
+    node = dataclasses.replace(cfg.mapper_node, pose_source=source, pose_auto_wait_s=1.0)
+    return PoseStage(node, cfg.odometry, cfg.topics, Health("mapper"), clock=clock or Clock(),
+                     tf_available=tf_available)
+
+
+def _feed_images(st: PoseStage, frames) -> list:
+    out = []
+    for f in frames:
+        out += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+        out += st.offer_image("color", f.stamp_ns, f.rgb, f.intrinsics)
+    return out
+
+
+def test_topic_poses_pass_through_and_nothing_is_published(walk):
+    st = _stage("topic")
+    f = walk[0]
+    assert st.offer_pose(f.stamp_ns, f.pose) == [(f.stamp_ns, f.pose)]
+    assert _feed_images(st, walk[:3]) == [] and not st.publishes
+
+
+def test_auto_takes_the_pose_topic_when_one_publishes(walk):
+    st = _stage("auto")
+    assert _feed_images(st, walk[:2]) == []        # undecided: no pose yet
+    assert st.offer_pose(walk[2].stamp_ns, walk[2].pose)
+    assert st.mode == "topic" and not st.publishes
+
+
+def test_auto_falls_back_to_odometry_that_follows_the_camera(walk):
+    clock = Clock()
+    st = _stage("auto", clock)
+    early = _feed_images(st, walk[:5])
+    assert early == [] and st.mode is None           # still waiting for a pose source
+    clock.t = 2.0
+    poses = dict(_feed_images(st, walk[5:]))
+    assert st.mode == "odometry" and st.publishes
+    assert len(poses) >= 20
+    # Relative motion matches the true one (the odometry's world is its first frame).
+    first = walk[0].pose
+    for f in walk[5::6]:
+        if f.stamp_ns in poses:
+            true_rel = invert_pose(first) @ f.pose
+            dt, dr = pose_distance(true_rel, poses[f.stamp_ns])
+            assert dt < 0.05 and dr < 3.0, (dt, dr)
+
+
+def test_tf_poses_are_looked_up_at_each_frame_and_interpolated(walk):
+    st = _stage("tf")
+    cam = {f.stamp_ns: f.pose for f in walk}
+    # /tf at 15 Hz, frames at 30 Hz: every other frame needs interpolation.
+    base = np.eye(4)
+    base[:3, 3] = [1.0, 2.0, 0.0]
+    st.offer_tf(tf_msg(0, [("world", "base", base)]), static=True)
+    got = []
+    for i, f in enumerate(walk):
+        got += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+        if i % 2 == 0:
+            got += st.offer_tf(tf_msg(f.stamp_ns, [("base", "camera",
+                                                    invert_pose(base) @ f.pose)]), False)
+    got = dict(got)
+    assert len(got) >= len(walk) - 2 and st.publishes
+    for stamp, T in got.items():
+        dt, dr = pose_distance(T, cam[stamp])
+        assert dt < 0.01 and dr < 0.5, (stamp, dt, dr)
+
+
+def test_tf_without_tf2_msgs_is_a_clear_error_and_auto_skips_it():
+    with pytest.raises(ValueError, match="tf2_msgs"):
+        _stage("tf", tf_available=False)
+    st = _stage("auto", tf_available=False)
+    st.offer_tf(tf_msg(0, [("world", "camera", np.eye(4))]), static=True)
+    assert st.mode is None
+
+
+@pytest.mark.ros
+def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
+    """A camera with no pose topic and no /tf: the mapper chooses odometry (auto), publishes
+    the poses on /camera/pose for the others, and labels come out."""
+    import time
+
+    import rosutil
+    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+
+    domain = rosutil.domain(12)
+    apply_ros_env(domain)
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+
+    frames = list(synth.generate(1005, 90, synth.SynthConfig(width=160, height=120,
+                                                             fps=10.0)))
+    args = ["--ros-args", "-p", "mapper_node.pose_auto_wait_s:=1.0"]
+    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
+                      tmp_path / f"{n}.log") for n in ("embedding", "mapper", "discovery")}
+    rclpy.init()
+    node = rclpy.create_node("camera_without_poses")
+    labels, poses = [], []
+    try:
+        node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
+        node.create_subscription(PoseStamped, "/camera/pose", poses.append, output_qos(50))
+        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
+            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
+            ("/camera/color/camera_info", CameraInfo))}
+        assert spin_until(node, lambda: all(p.get_subscription_count() >= 2
+                                            for p in list(pubs.values())[:2]), 120)
+        end = time.monotonic() + 240
+        i = 0
+        while time.monotonic() < end and not (len(labels) >= 3 and len(poses) >= 10):
+            f = frames[i % len(frames)]
+            stamp = f.stamp_ns + (i // len(frames)) * 20_000_000_000
+            pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, stamp,
+                                                                      "camera"))
+            pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", stamp, "camera"))
+            pubs["/camera/depth/image_raw"].publish(
+                image_msg(np.round(f.depth * 1000).astype(np.uint16), "16UC1", stamp,
+                          "camera"))
+            i += 1
+            spin_until(node, lambda: False, 0.1)
+        logs = {n: (tmp_path / f"{n}.log").read_text() for n in procs}
+        assert len(poses) >= 10 and len(labels) >= 3, logs["mapper"][-3000:]
+        assert "pose source: odometry" in logs["mapper"]
+        assert all(p.poll() is None for p in procs.values())
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        codes = [stop(p, timeout=30) for p in procs.values()]
+    assert codes == [0, 0, 0]
