@@ -71,3 +71,21 @@ def test_synth_cli_writes_readable_scene(tmp_path, fmt):
     frames = list(FrameReader(out) if fmt == "mcap" else read_folder(out))
     assert len(frames) == 3 and frames[0].semantic is not None
     assert frames[0].rgb.shape == (72, 96, 3)
+
+
+def test_run_estimates_the_poses_of_a_bag_without_them(tmp_path):
+    """As the mapper node's pose_source auto: no pose topic in the bag -> RGB-D odometry."""
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    bag = tmp_path / "noposes"
+    write_bag(bag, synth.generate(1002, 24, synth.SynthConfig(width=160, height=120)),
+              pose_mode="none")
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "run", "--bag", str(bag),
+                        "--out", str(out), "--set", "run.overlays=0"],
+                       capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert r.returncode == 0, r.stdout + r.stderr
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["poses"] == "odometry" and result["labelled"] >= 2
+    assert result["metrics"]["miou_known"] > 20.0

@@ -208,10 +208,10 @@ def frame_messages(fr: Frame, topics: Topics = Topics(), depth_encoding: str = "
         raise BagError(f"color_encoding must be rgb8 or bgr8, got {color_encoding!r}")
     if depth_encoding not in ("16UC1", "32FC1"):
         raise BagError(f"depth_encoding must be 16UC1 or 32FC1, got {depth_encoding!r}")
-    if pose_mode not in ("topic", "tf", "both"):
-        raise BagError(f"pose_mode must be topic, tf or both, got {pose_mode!r}")
+    if pose_mode not in ("topic", "tf", "both", "none"):
+        raise BagError(f"pose_mode must be topic, tf, both or none, got {pose_mode!r}")
     fr.validate()
-    if fr.pose is None:
+    if fr.pose is None and pose_mode != "none":
         raise BagError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
                        "`neurncd convert --poses odometry`)")
     s, cam = int(fr.stamp_ns), topics.camera_frame
@@ -242,7 +242,8 @@ def write_bag(path: str | Path, frames: Iterable[Frame], storage: str = "mcap",
 
     Header stamps and bag times are ``frame.stamp_ns``; images use frame_id
     ``topics.camera_frame``, the pose ``topics.world_frame``. ``pose_mode``
-    writes the pose on the pose topic, on /tf (world -> camera) or both.
+    writes the pose on the pose topic, on /tf (world -> camera), both, or not at all
+    (``none``: a bag like a camera's without localisation).
     """
     it: Iterable[Frame] = frames
     if progress:
@@ -403,9 +404,11 @@ class FrameReader:
         self.dropped = list(self._plan_dropped)
 
     @classmethod
-    def from_config(cls, path: str | Path, topics: Topics, sync: SyncConfig) -> "FrameReader":
+    def from_config(cls, path: str | Path, topics: Topics, sync: SyncConfig,
+                    with_poses: bool = True) -> "FrameReader":
         return cls(path, topics, sync.with_ground_truth, sync.max_stamp_skew_ns,
-                   sync.tf_parent or None, sync.tf_child or None, sync.max_pose_gap_ns)
+                   sync.tf_parent or None, sync.tf_child or None, sync.max_pose_gap_ns,
+                   with_poses=with_poses)
 
     def __len__(self) -> int:
         return len(self._plan)

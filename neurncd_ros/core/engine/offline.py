@@ -174,8 +174,12 @@ def overlay(out: Output) -> np.ndarray:
 
 
 def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | None = None,
-               progress: bool = True) -> dict[str, Any]:
-    """Run the engine on frames; write metrics.json and overlays; return the result."""
+               progress: bool = True, source: Callable[[], dict] | None = None
+               ) -> dict[str, Any]:
+    """Run the engine on frames; write metrics.json and overlays; return the result.
+
+    ``source()``, called once the frames are used up, adds what the frame source
+    knows about itself (the bag, its drops, where the poses came from)."""
     from ..discovery.metrics import Evaluator
 
     out = Path(out_dir)
@@ -212,6 +216,8 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
     if n_evaluated:
         result["metrics"] = ev.result()
         result["metrics_backbone_only"] = ev_backbone.result()
+    if source is not None:
+        result.update(source())
     (out / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
     return result
 
@@ -224,16 +230,43 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(type(obj).__name__)
 
 
+def bag_poses(bag: str | Path, cfg) -> str:
+    """Where ``neurncd run`` takes a bag's poses from, by ``mapper_node.pose_source`` as the
+    mapper node decides it: "bag" (its pose topic or the /tf pair in ``sync``) or
+    "odometry" (estimated from the images)."""
+    from ..data.bag import bag_topics
+
+    source = cfg.mapper_node.pose_source
+    if source == "odometry":
+        return "odometry"
+    if source in ("topic", "tf"):
+        return "bag"
+    topics = bag_topics(bag)
+    has_tf = bool(cfg.sync.tf_parent and cfg.sync.tf_child) and (
+        cfg.topics.tf in topics or cfg.topics.tf_static in topics)
+    return "bag" if cfg.topics.pose in topics or has_tf else "odometry"
+
+
 def run_bag(bag: str | Path, cfg, out_dir: str | Path) -> dict[str, Any]:
-    """``neurncd run --bag``: synchronised frames from a bag through the engine."""
+    """``neurncd run --bag``: synchronised frames from a bag through the engine; a bag
+    without poses gets them from RGB-D odometry, as the mapper node's pose_source auto."""
     from ..data.bag import FrameReader
 
-    reader = FrameReader.from_config(bag, cfg.topics, cfg.sync)
-    result = run_frames(reader, cfg, out_dir, total=len(reader))
-    result["bag"] = str(bag)
-    result["dropped"] = len(reader.dropped)
-    result["reader"] = reader.summary()
-    return result
+    poses = bag_poses(bag, cfg)
+    reader = FrameReader.from_config(bag, cfg.topics, cfg.sync, with_poses=poses == "bag")
+    frames: Iterable[Frame] = reader
+    tracked: list = []
+    if poses == "odometry":
+        from ..odometry import with_odometry
+        frames = with_odometry(reader, cfg.odometry, tracked)
+    def source() -> dict:
+        out = {"bag": str(bag), "poses": poses, "dropped": len(reader.dropped),
+               "reader": reader.summary()}
+        if poses == "odometry":
+            out["odometry_lost"] = sum(r.pose is None for r in tracked)
+        return out
+
+    return run_frames(frames, cfg, out_dir, total=len(reader), source=source)
 
 
 def summary(result: dict[str, Any]) -> str:
