@@ -18,7 +18,9 @@ the bag), ``latency_median_s``, ``latency_p95_s``, ``keyframes_labelled_share``
 resident memory, sampled every 0.25 s), ``cpu_share_per_node`` (CPU seconds /
 wall seconds), ``mapper_iterations_per_s``, ``shutdown_s`` per node (SIGINT to
 exit), ``online_miou_*`` and ``offline_miou_*``, and ``machine_probe_ms`` (the
-default backbone on one 320x240 frame, 1 thread, median) to compare machines.
+default backbone on one 320x240 frame, 1 thread, median) to compare machines:
+on a machine slower than a 40 ms probe, ``probe_scale`` = probe / 40 and the
+``*_at_probe_40ms`` keys give the rate times it and the latencies divided by it.
 
     .venv/bin/python bench/graph.py            # seed 2000, 300 frames
     .venv/bin/python bench/graph.py --frames 150 --seed 2001
@@ -46,6 +48,7 @@ from _common import commit  # noqa: E402  (bench/ is on sys.path)
 
 RESULTS = REPO / "bench" / "results"
 DOMAIN = 88
+PROBE_REFERENCE_MS = 40.0  # the machine the issue's rate and latency targets are set for
 
 RECORDER = textwrap.dedent("""
     import json, sys, time
@@ -311,6 +314,14 @@ def main() -> None:
             (args.frames / 30.0), 1e-3), 2),
         "live_wall_s": round(live["wall_s"], 1),
     }
+    # The issue's targets hold on a machine whose probe is at most 40 ms; on a
+    # slower one the rate and latency are scaled by the probe (CPU-bound stages).
+    scale = max(probe / PROBE_REFERENCE_MS, 1.0)
+    res["probe_scale"] = round(scale, 3)
+    res["label_rate_hz_at_probe_40ms"] = round(rate * scale, 2)
+    for k in ("latency_median_s", "latency_p95_s"):
+        if res[k] is not None:
+            res[f"{k}_at_probe_40ms"] = round(res[k] / scale, 3)
     online = score(frames, live["images"])
     res.update({f"online_{k}": v for k, v in online.items()})
     if not args.no_offline:
@@ -332,7 +343,9 @@ def main() -> None:
     picture(depth, labels, keyframes, res, RESULTS / "graph.png")
     print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, 320x240 "
           f"(machine probe {res['machine_probe_ms']} ms):")
-    for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "keyframes_labelled_share",
+    for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "probe_scale",
+              "label_rate_hz_at_probe_40ms", "latency_median_s_at_probe_40ms",
+              "latency_p95_s_at_probe_40ms", "keyframes_labelled_share",
               "frames_labelled_share", "peak_rss_gb_all_nodes", "cpu_share_per_node",
               "mapper_iterations_per_s", "shutdown_s", "online_miou_all", "online_miou_known",
               "online_miou_novel", "offline_miou_all", "offline_miou_known",
