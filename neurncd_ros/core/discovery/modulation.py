@@ -43,6 +43,7 @@ import math
 import numpy as np
 
 from ..params import param
+from ..uncertainty import softmax  # noqa: F401 (the one softmax; re-exported)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,13 +90,6 @@ def _check(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
         raise ValueError(f"segments must be an integer id image, got {segments.dtype}")
     return segments, embedding.astype(np.float32, copy=False), entropy.astype(np.float32,
                                                                               copy=False)
-
-
-def softmax(embedding: np.ndarray) -> np.ndarray:
-    """Softmax over the last axis, float32."""
-    z = embedding - embedding.max(axis=-1, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=-1, keepdims=True)
 
 
 def interior(segments: np.ndarray, radius: int) -> np.ndarray:
