@@ -55,7 +55,8 @@ class OdometryConfig:
     """RGB-D odometry: poses from colour and depth when the input has none."""
 
     width: int = param(160, "images are downscaled to this width for dense tracking (0 = "
-                       "full size); 160 keeps a 320x240 frame well under 30 ms on one core",
+                       "full size); small keeps tracking within a frame period on one core "
+                       "(see bench/results/odometry.json)",
                        lo=0, hi=4096, unit="px")
     method: str = param("rgbd", "dense terms: rgbd = photometric + ICP, depth = ICP only, "
                         "rgb = photometric only", choices=("rgbd", "depth", "rgb"))
