@@ -127,7 +127,7 @@ def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
             shown.append((data["rgb"][i], data["semantic"][i],
                           backbone.channel_to_id[pred].astype(np.uint16)))
     s = train.scores_from_confusion(conf)
-    out = {f"{prefix}_known_miou": s["known_miou"], f"{prefix}_known_pixel_accuracy":
+    out = {f"{prefix}_miou_known": s["miou_known"], f"{prefix}_known_pixel_accuracy":
            s["pixel_accuracy"], f"{prefix}_frames": int(len(data["rgb"]))}
     for name, v in s["iou"].items():
         if v is not None:

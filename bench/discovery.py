@@ -54,7 +54,8 @@ from neurncd_ros.core.discovery.geoseg import GeoSegConfig, segment_depth  # noq
 from neurncd_ros.core.discovery.mcl import MCLConfig, markov_cluster, tune  # noqa: E402
 from neurncd_ros.core.discovery.metrics import adjusted_rand_index  # noqa: E402
 from neurncd_ros.core.discovery.modulation import ModulationConfig, segment_descriptors, \
-    simulate_embedding, softmax  # noqa: E402
+    simulate_embedding  # noqa: E402
+from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 GEOSEG_SEEDS = seeds.TEST[:5]
@@ -171,8 +172,7 @@ def embedder():
 
 
 def _entropy(emb: np.ndarray) -> np.ndarray:
-    p = softmax(emb)
-    return -(p * np.log(np.maximum(p, 1e-12))).sum(-1).astype(np.float32)
+    return entropy(emb)
 
 
 def bench_tuning(embed, frames: int, step: int) -> tuple[dict, list[dict]]:

@@ -184,7 +184,7 @@ def test_miou_definition():
     pred = np.array([0, 1, 1, 1, 0], np.int64)
     s = train.scores_from_confusion(train.confusion(pred, target))
     # IoU(0) = 1/2, IoU(1) = 2/3, other classes absent from GT are excluded.
-    assert s["known_miou"] == pytest.approx((0.5 + 2 / 3) / 2 * 100)
+    assert s["miou_known"] == pytest.approx((0.5 + 2 / 3) / 2 * 100)
     assert s["pixel_accuracy"] == pytest.approx(0.75)
 
 
@@ -225,7 +225,7 @@ def test_train_loop_learns_a_toy_task(tmp_path):
                                epochs=6, batch_size=4, progress=False,
                                command="test", crop=None)
     assert rec["history"][-1]["loss"] < rec["history"][0]["loss"]
-    assert rec["val_known_miou"] > 60
+    assert rec["val_miou_known"] > 60
     assert rec["trained_on"] == "toy" and rec["train_frames"] == 16
     assert json.loads((tmp_path / "w.json").read_text())["trained_on"] == "toy"
     net = small.load_weights(str(tmp_path / "w.pt"))

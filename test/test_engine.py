@@ -21,15 +21,7 @@ from neurncd_ros.core.engine.mapping import MapperStage, resize_to
 from neurncd_ros.core.engine.offline import OfflineEngine, mapper_factory
 from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
 
-MS = 1_000_000
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
+from fakeclock import MS, Clock  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")

@@ -14,15 +14,7 @@ from neurncd_ros.core.data.bag import tf_msg
 from neurncd_ros.core.engine.health import Health
 from neurncd_ros.core.engine.poses import PoseStage
 
-MS = 1_000_000
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
+from fakeclock import MS, Clock  # noqa: E402,F401
 
 
 @pytest.fixture(scope="module")

@@ -7,15 +7,7 @@ import pytest
 
 from neurncd_ros.core import sync
 
-MS = 1_000_000
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
+from fakeclock import MS, Clock  # noqa: E402,F401
 
 
 def test_pairs_nearest_within_tolerance_and_supersedes_what_can_never_pair():

@@ -40,14 +40,6 @@ for _name, _ids in _NYU40_TO_13.items():
     NYU40_TO_NYU13[_ids] = CLASS_ID[_name]
 
 
-def nyu40_to_nyu13(labels: np.ndarray) -> np.ndarray:
-    """Map an NYU-40 label image (0 void) to NYU-13 ids (0 void)."""
-    labels = np.asarray(labels)
-    if labels.size and (labels.min() < 0 or labels.max() > 40):
-        raise ValueError(f"NYU-40 labels must be in 0..40, got {labels.min()}..{labels.max()}")
-    return NYU40_TO_NYU13[labels]
-
-
 # Fixed palette: NYU-13 colours, then a deterministic sequence for novel ids.
 _KNOWN_COLOURS = np.array([
     [0, 0, 0],        # 0 unlabelled

@@ -1,5 +1,8 @@
 """Camera poses from the RGB-D images themselves, for inputs that carry none.
 
+(One module of about 570 lines: dense tracking, the feature fallback, the
+checks and relocalisation share one keyframe store and one loss policy.)
+
 NYUv2 raw sequences have no poses, and many robot bags have no pose topic or
 a broken /tf tree. :class:`RGBDOdometry` estimates camera-to-world poses from
 colour and depth alone, frame to keyframe:
@@ -52,7 +55,8 @@ class OdometryConfig:
     """RGB-D odometry: poses from colour and depth when the input has none."""
 
     width: int = param(160, "images are downscaled to this width for dense tracking (0 = "
-                       "full size); 160 keeps a 320x240 frame well under 30 ms on one core",
+                       "full size); small keeps tracking within a frame period on one core "
+                       "(see bench/results/odometry.json)",
                        lo=0, hi=4096, unit="px")
     method: str = param("rgbd", "dense terms: rgbd = photometric + ICP, depth = ICP only, "
                         "rgb = photometric only", choices=("rgbd", "depth", "rgb"))

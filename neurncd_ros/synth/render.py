@@ -1,5 +1,8 @@
 """CPU ray caster for the synthetic rooms: depth, labels, procedural texture, sensor noise.
 
+(One module of about 540 lines: intersection, z-buffer, textures and the
+sensor-noise model share the per-frame ray arrays and are tuned together.)
+
 All rays of a frame share the camera centre, so each part is intersected only
 with the rays inside its projected screen rectangle (a rasteriser-like z-buffer
 of exact ray/box and ray/cylinder hits). Textures are functions of the hit

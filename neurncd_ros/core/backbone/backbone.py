@@ -69,8 +69,8 @@ class BackboneConfig:
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
     num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
                              "(0 = leave torch's setting); 1 because the "
-                             "nodes share the cores: 2 threads against a busy process took "
-                             "2.5 s per frame instead of 41 ms", lo=0, hi=256)
+                             "nodes share the cores and more threads than free cores stall "
+                             "(see bench/results/graph.json)", lo=0, hi=256)
 
 
 def check_rgbd(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -1,5 +1,9 @@
 """ESANet R34-NBt1D: the public RGB-D segmentation network, and safe checkpoint loading.
 
+(One module of about 510 lines: the network's layers, its checkpoint-name
+mapping and the safe loader must change together to keep the state_dict
+matching the released checkpoints.)
+
 A re-implementation of the ESANet model of Seichter et al. (ICRA 2021,
 TUI-NICR/ESANet, Apache-2.0) in its published R34-NBt1D configuration, written
 so that its ``state_dict`` matches the released checkpoints name for name,

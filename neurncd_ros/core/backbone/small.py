@@ -32,8 +32,8 @@ DEPTH_STD_M = 1.4
 """Spread of indoor depth (m): scale of the depth normalisation."""
 
 DEFAULT_WIDTHS = (20, 40, 80, 160)
-"""Channels of the stem and the three encoder stages of the shipped model (1.8 M
-parameters; 29 ms per 320x240 frame on one core of the 2-core machine)."""
+"""Channels of the stem and the three encoder stages of the shipped model (small
+enough for the frame budget on one core; timings in bench/results/backbone.json)."""
 
 ARCH_VERSION = 1
 """Bumped whenever the layout changes, so stale weights fail loudly."""

@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from .. import classes
+from ..discovery.metrics import class_iou
 from ..frame import Frame
 from . import small
 
@@ -168,14 +169,10 @@ def confusion(pred: np.ndarray, target: np.ndarray, n: int = classes.NUM_KNOWN) 
 def scores_from_confusion(conf: np.ndarray) -> dict:
     """Known-class mIoU (percent, over classes present in the GT), per-class IoU, accuracy."""
     tp = np.diag(conf).astype(np.float64)
-    gt = conf.sum(1).astype(np.float64)
-    pr = conf.sum(0).astype(np.float64)
-    union = gt + pr - tp
-    present = gt > 0
-    iou = np.where(union > 0, tp / np.maximum(union, 1), np.nan)
-    miou = float(np.nanmean(np.where(present, iou, np.nan)) * 100) if present.any() else math.nan
+    iou, present = class_iou(conf)
+    miou = float(np.nanmean(iou) * 100) if present.any() else math.nan
     acc = float(tp.sum() / max(conf.sum(), 1))
-    return {"known_miou": miou, "pixel_accuracy": acc,
+    return {"miou_known": miou, "pixel_accuracy": acc,
             "iou": {name: (None if not present[k] else round(float(iou[k]) * 100, 2))
                     for k, name in enumerate(classes.KNOWN_NAMES)}}
 
@@ -290,7 +287,7 @@ def _init_from(model: small.SmallRGBDNet, init: str) -> dict:
     if rec_path.is_file():
         prev = json.loads(rec_path.read_text())
         init_record.update({k: prev.get(k) for k in (
-            "command", "steps", "epochs_run", "lr", "train_seconds", "val_known_miou",
+            "command", "steps", "epochs_run", "lr", "train_seconds", "val_miou_known",
             "init", "trained_on")})
     return init_record
 
@@ -397,8 +394,8 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                 total_steps = max(step + 1, min(total_steps, int(budget / per_step)))
                 bar.total = total_steps
             if val_every > 0 and step % val_every == 0 and step < total_steps:
-                score = evaluate(model, val)["known_miou"]
-                val_curve.append({"step": step, "val_known_miou": round(score, 2)})
+                score = evaluate(model, val)["miou_known"]
+                val_curve.append({"step": step, "val_miou_known": round(score, 2)})
                 tqdm.write(f"step {step}: validation known-class mIoU {score:.2f} %")
                 model.train()
             if step >= total_steps:
@@ -443,7 +440,7 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         "loss": "cross-entropy over 9 known classes; void and novel "
                 "(ceiling, picture, tv, window) ignored",
         "augmentation": f"flip, zoom 0.8-1.35, crop {crop}, colour jitter 0.25, rgb noise",
-        "val_known_miou": round(val_scores["known_miou"], 2),
+        "val_miou_known": round(val_scores["miou_known"], 2),
         "val_pixel_accuracy": round(val_scores["pixel_accuracy"], 4),
         "val_iou": val_scores["iou"],
         "history": history, "val_curve": val_curve, "init": init_record,
@@ -457,7 +454,7 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         record["synth_config"] = source["synth_config"]
     if arch == "default":
         small.save_weights(model, str(out_path),
-                           extra={"val_known_miou": record["val_known_miou"]})
+                           extra={"val_miou_known": record["val_miou_known"]})
     record["weights_bytes"] = out_path.stat().st_size
     out_path.with_suffix(".json").write_text(json.dumps(record, indent=1) + "\n")
     if progress:
@@ -471,7 +468,7 @@ def summary(record: dict) -> str:
     return (f"trained {record['steps']} steps ({record['epochs_run']} epochs, "
             f"{record['train_frames']} frames) in {record['train_seconds'] / 60:.1f} min\n"
             f"validation {_val_text(record)}: known-class mIoU "
-            f"{record['val_known_miou']:.2f} %, pixel accuracy "
+            f"{record['val_miou_known']:.2f} %, pixel accuracy "
             f"{record['val_pixel_accuracy'] * 100:.1f} %\nper-class IoU: {ious}")
 
 

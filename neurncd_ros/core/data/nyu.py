@@ -31,7 +31,7 @@ import numpy as np
 from .. import classes
 from ..camera import Intrinsics
 from ..frame import Frame
-from .formats import PRESETS, FormatError
+from .folder_common import PRESETS, FormatError
 
 MATLAB_73 = b"MATLAB 7.3 MAT-file"
 NUM_NYU894 = 894

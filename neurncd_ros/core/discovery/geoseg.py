@@ -1,5 +1,8 @@
 """Geometric segmentation of a depth image into convex sub-instance segments.
 
+(One module of about 690 lines: the steps below share their vectorised
+neighbour-pair helpers and one config, and are read in pipeline order.)
+
 After Furrer et al. 2018 ("Incremental object database: building 3D models
 from multiple partial observations"), the public ethz-asl ``depth_segmentation``
 package. Steps, all vectorised over the image:

@@ -32,10 +32,9 @@ Per processed frame (:meth:`Discoverer.process`):
 Defaults (``entropy_threshold`` 0.15, ``min_cluster_segments`` 1,
 ``segment_novelty`` on; with mcl's and modulation's) were chosen by
 ``bench/ncd.py --tune`` on the rendered embedding of 8 tuning scenes
-(``seeds.TUNE``). The threshold is low because the default backbone is
-confident: its mean normalised entropy is 0.01 on walls, 0.07 on pictures,
-0.25 on ceilings and TVs; at 0.6 (the first default, set for a stand-in
-embedding) nearly every novel object was named a known class.
+(``seeds.TUNE``; scores in bench/results/ncd_tuning.json). The threshold is
+low because the default backbone is confident even on novel objects: a high
+threshold names nearly every novel object a known class.
 
 Every pixel of a processed frame gets a label: segment pixels get their
 cluster's label; pixels without a segment (no depth, edges left unassigned,

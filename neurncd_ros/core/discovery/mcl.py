@@ -24,8 +24,8 @@ exp(-eta * d) of the Euclidean distance d between descriptors). Both give 1 for
 identical descriptors, matching the default constant self-loop of 1. The
 descriptors of :mod:`modulation` have a fixed scale (unit embedding part), so
 eta is not normalised by the data: dividing d by its mean neighbour distance
-(tried first) made the kernel depend on how many segments are in memory, and
-MCL fragmented into singletons at 1,000+ nodes.
+would make the kernel depend on how many segments are in memory, and MCL
+fragments into singletons on large graphs.
 
 Defaults. MCL depends sharply on the inflation and on the affinity's
 contrast: a correct MCL at the paper's inflation 12 on a top-30 graph of this

@@ -101,14 +101,30 @@ class Evaluator:
         return out
 
 
-def _scores(conf: np.ndarray, gt_total: np.ndarray) -> dict:
-    """IoU/accuracy figures from a square GT x prediction confusion over NYU-13."""
+def class_iou(conf: np.ndarray, gt_total: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-class IoU (fraction; NaN where the class is absent from the GT) and presence.
+
+    ``conf`` is a square GT x prediction confusion; ``gt_total`` the GT pixel
+    count per class (default: the row sums, i.e. every GT pixel was predicted as
+    one of the columns). The one IoU both the discovery metrics and the
+    backbone's training scores use.
+    """
     tp = np.diag(conf).astype(np.float64)
+    gt_total = conf.sum(axis=1) if gt_total is None else gt_total
     fp = conf.sum(axis=0) - tp
     fn = gt_total - tp
     present = gt_total > 0
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = np.where(present, tp / (tp + fp + fn), np.nan)
+    return iou, present
+
+
+def _scores(conf: np.ndarray, gt_total: np.ndarray) -> dict:
+    """IoU/accuracy figures from a square GT x prediction confusion over NYU-13."""
+    tp = np.diag(conf).astype(np.float64)
+    iou, present = class_iou(conf, gt_total)
+    with np.errstate(invalid="ignore", divide="ignore"):
         recall = np.where(present, tp / gt_total, np.nan)
     known = np.isin(_GT_IDS, KNOWN_IDS) & present
     novel = np.isin(_GT_IDS, NOVEL_IDS) & present

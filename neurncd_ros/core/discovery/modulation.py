@@ -20,19 +20,14 @@ intends, and what is implemented here, is a *pooled* descriptor per segment:
 only (the entropy-only descriptor is [mean, std], so under cosine affinity it
 mostly separates by the std/mean ratio: a deliberately weak baseline).
 
-Choices, by measurement on training synthetic seeds 0-3 (segment descriptors
-clustered by MCL, adjusted Rand index against the segments' GT classes, best
-inflation each): mean softmax 0.65 vs centred-logit pooling 0.84, so logits
-are the default (mean softmax shares a uniform floor over all channels, which
-makes every high-entropy segment look alike). The entropy weight barely moved
-that score (0.25: 0.83, 1.0: 0.85) but at 1.0 the entropy part dominates the
-descriptor of uncertain segments and two different novel objects merged into
-one cluster in ``test_labeller``; 0.3 keeps the modulation without that.
-End to end on the rendered embedding of 8 tuning scenes (``bench/ncd.py
---tune``) 0.3 also beat 1.0 and 3.0, and pooling the entropy over each
-segment's interior (2 px from its border at 320x240; the rendered entropy
-peaks along every boundary, which made all small segments look uncertain) beat
-all-pixel pooling.
+Why the defaults: centred-logit pooling, because mean softmax shares a uniform
+floor over all channels, which makes every high-entropy segment look alike; a
+small entropy weight, because a large one lets the entropy part dominate the
+descriptor of uncertain segments and merges different novel objects; entropy
+pooled over each segment's interior, because the rendered entropy peaks along
+every boundary, which makes all small segments look uncertain. The scores
+behind these choices are in bench/results/discovery.json and
+bench/results/ncd_tuning.json (``bench/discovery.py``, ``bench/ncd.py --tune``).
 """
 
 from __future__ import annotations
@@ -43,6 +38,7 @@ import math
 import numpy as np
 
 from ..params import param
+from ..uncertainty import softmax  # noqa: F401 (the one softmax; re-exported)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,13 +85,6 @@ def _check(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
         raise ValueError(f"segments must be an integer id image, got {segments.dtype}")
     return segments, embedding.astype(np.float32, copy=False), entropy.astype(np.float32,
                                                                               copy=False)
-
-
-def softmax(embedding: np.ndarray) -> np.ndarray:
-    """Softmax over the last axis, float32."""
-    z = embedding - embedding.max(axis=-1, keepdims=True)
-    e = np.exp(z)
-    return e / e.sum(axis=-1, keepdims=True)
 
 
 def interior(segments: np.ndarray, radius: int) -> np.ndarray:

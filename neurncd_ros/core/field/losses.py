@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 import torch.nn.functional as F
+
+from neurncd_ros.core.uncertainty import entropy  # noqa: F401 (re-exported)
 
 
 def photometric(rgb: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -48,14 +49,5 @@ def free_space(weights: torch.Tensor, t: torch.Tensor, target: torch.Tensor,
     return (weights * front).sum(dim=-1).pow(2).mean()
 
 
-def entropy_torch(logits: torch.Tensor) -> torch.Tensor:
-    """Natural-log entropy of softmax(logits) over the last axis, in [0, ln S]."""
-    log_p = F.log_softmax(logits, dim=-1)
-    h = -(log_p.exp() * log_p).sum(dim=-1)
-    return h.clamp(0.0, math.log(logits.shape[-1]))
-
-
-def entropy(logits: np.ndarray) -> np.ndarray:
-    """Numpy wrapper of :func:`entropy_torch`, float32."""
-    with torch.no_grad():
-        return entropy_torch(torch.from_numpy(np.asarray(logits, np.float32))).numpy()
+# The per-pixel entropy lives in core/uncertainty.py; these names stay for callers.
+entropy_torch = entropy

@@ -1,0 +1,286 @@
+"""What every folder reader shares: kinds, presets, FolderConfig, image/depth
+decoding, trajectory files. Split out of :mod:`.formats` (whose docstring lists
+the layouts); import from there."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from ..camera import Intrinsics, check_pose, pose_from_tq
+from ..frame import Frame
+from ..params import param
+from ..sync import nearest
+
+
+KINDS = ("auto", "replica", "tum", "nyu", "nyu_labelled", "posetxt", "redwood")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".ppm", ".pgm", ".bmp", ".tif", ".tiff")
+
+
+class FormatError(ValueError):
+    """A dataset folder or file cannot be read; the text names the path."""
+
+
+# ---------------------------------------------------------------- parameters
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """Documented depth encoding and camera of one dataset."""
+
+    depth_format: str
+    depth_scale: float
+    intrinsics: tuple[float, float, float, float] | None  # None: format decides
+
+
+PRESETS: dict[str, Preset] = {
+    "replica": Preset("scale", 1000.0, None),                       # 90 deg HFOV
+    "tum": Preset("scale", 5000.0, (517.3, 516.5, 318.6, 255.3)),   # TUM fr1
+    "nyu": Preset("nyu_disparity", 1.0, (518.86, 519.47, 325.58, 253.74)),
+    "kinect": Preset("scale", 1000.0, (518.0, 519.0, 325.5, 253.5)),  # slambook NYU seq
+    "icl": Preset("scale", 5000.0, (481.2, -480.0, 319.5, 239.5)),  # y-up: negative fy
+    "redwood": Preset("scale", 1000.0, (525.0, 525.0, 319.5, 239.5)),
+    "sun": Preset("sun_rotated", 1000.0, (525.0, 525.0, 319.5, 239.5)),
+}
+DEFAULT_PRESET = {"replica": "replica", "tum": "tum", "nyu": "nyu", "posetxt": "kinect",
+                  "redwood": "redwood"}
+
+
+@dataclasses.dataclass(frozen=True)
+class FolderConfig:
+    """How a dataset folder is decoded (0 / empty = the preset's default)."""
+
+    preset: str = param("", "dataset defaults for depth decoding and intrinsics; '' = the "
+                        "folder kind's own default", choices=("",) + tuple(PRESETS))
+    depth_format: str = param("", "depth decoding: scale = raw / depth_scale, nyu_disparity = "
+                              "byte-swapped Kinect disparity, sun_rotated = SUN RGB-D 3-bit "
+                              "rotation then / depth_scale; '' = preset",
+                              choices=("", "scale", "nyu_disparity", "sun_rotated"))
+    depth_scale: float = param(0.0, "raw depth units per metre; 0 = preset (Replica/Redwood/"
+                               "NYU-mm 1000, TUM/ICL 5000)", lo=0.0)
+    max_depth_m: float = param(0.0, "depths beyond this become 0 (no measurement); 0 = keep "
+                               "all (NYU disparity always caps at 10 m)", lo=0.0, unit="m")
+    intrinsics: list[float] = param([], "fx, fy, cx, cy in pixels; empty = preset or the "
+                                    "folder's own camera file")
+    hfov_deg: float = param(90.0, "horizontal field of view of Replica renders",
+                            lo=1.0, hi=179.0, unit="deg")
+    fps: float = param(30.0, "frame rate used to make stamps for layouts without timestamps",
+                       lo=0.001, unit="Hz")
+    start_stamp_ns: int = param(1_000_000_000, "stamp of the first frame for layouts without "
+                                "timestamps", lo=0, unit="ns")
+    max_time_diff_s: float = param(0.02, "TUM association: largest |t_rgb - t_depth| and "
+                                   "|t_rgb - t_pose| accepted", lo=0.0, unit="s")
+    max_pose_gap_s: float = param(0.0, "TUM: interpolate the pose between trajectory samples "
+                                  "at most this far apart; 0 = nearest sample only",
+                                  lo=0.0, unit="s")
+    stride: int = param(1, "keep every n-th frame", lo=1)
+    max_frames: int = param(0, "stop after this many frames; 0 = all", lo=0)
+
+
+def _resolve(cfg: FolderConfig, kind: str) -> tuple[str, float, tuple | None]:
+    """Depth format, scale and intrinsics after applying the preset."""
+    preset = PRESETS[cfg.preset or DEFAULT_PRESET[kind]]
+    fmt = cfg.depth_format or preset.depth_format
+    scale = cfg.depth_scale or preset.depth_scale
+    if cfg.intrinsics:
+        if len(cfg.intrinsics) != 4:
+            raise FormatError(f"intrinsics must be 4 numbers fx, fy, cx, cy, got "
+                              f"{list(cfg.intrinsics)}")
+        intr = tuple(float(v) for v in cfg.intrinsics)
+    else:
+        intr = preset.intrinsics
+    return fmt, scale, intr
+
+
+# ---------------------------------------------------------------- image decoding
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Colour image file to (H, W, 3) uint8 RGB (OpenCV reads BGR)."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FormatError(f"{path}: cannot read colour image (missing or not an image)")
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def read_raw16(path: Path) -> np.ndarray:
+    """Single-channel 16-bit image file as stored (uint16)."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FormatError(f"{path}: cannot read image (missing or not an image)")
+    if img.ndim != 2 or img.dtype != np.uint16:
+        raise FormatError(f"{path}: expected a single-channel 16-bit image, got "
+                          f"{img.shape} {img.dtype}")
+    return img
+
+
+def nyu_disparity_to_metres(raw: np.ndarray, max_depth_m: float = 10.0) -> np.ndarray:
+    """NYUv2 raw Kinect disparity (as OpenCV reads the big-endian PGM) to metres.
+
+    The PGM stores big-endian values that OpenCV returns byte-swapped; 2047 is
+    "no measurement". NYU toolbox: depth = 351.3 / (1092.5 - disparity), capped.
+    """
+    d = raw.astype(np.uint16).byteswap().astype(np.float64)
+    with np.errstate(divide="ignore"):
+        z = 351.3 / (1092.5 - d)
+    bad = (d >= 2047) | ~np.isfinite(z) | (z <= 0) | (z > max_depth_m)
+    z[bad] = 0.0
+    return z.astype(np.float32)
+
+
+def sun_rotated_to_raw(raw: np.ndarray) -> np.ndarray:
+    """Undo SUN RGB-D's 16-bit storage rotation: d = (d >> 3) | (d << 13)."""
+    d = raw.astype(np.uint16)
+    return (d >> np.uint16(3)) | (d << np.uint16(13))
+
+
+def decode_depth(raw: np.ndarray, depth_format: str, depth_scale: float,
+                 max_depth_m: float = 0.0) -> np.ndarray:
+    """Raw uint16 depth image to float32 metres (0 = no measurement)."""
+    if depth_format == "nyu_disparity":
+        z = nyu_disparity_to_metres(raw, max_depth_m or 10.0)
+    else:
+        if depth_format == "sun_rotated":
+            raw = sun_rotated_to_raw(raw)
+        elif depth_format != "scale":
+            raise FormatError(f"unknown depth_format {depth_format!r}")
+        if not depth_scale > 0:
+            raise FormatError(f"depth_scale must be > 0, got {depth_scale}")
+        z = (raw.astype(np.float64) / depth_scale).astype(np.float32)
+    if max_depth_m > 0:
+        z = np.where(z > max_depth_m, np.float32(0), z)
+    return z
+
+
+def read_depth(path: Path, depth_format: str, depth_scale: float,
+               max_depth_m: float = 0.0) -> np.ndarray:
+    return decode_depth(read_raw16(path), depth_format, depth_scale, max_depth_m)
+
+
+def _camera(intr: tuple | None, h: int, w: int, where: Path) -> Intrinsics:
+    if intr is None:
+        raise FormatError(f"{where}: no intrinsics known; pass intrinsics=[fx, fy, cx, cy]")
+    return Intrinsics(intr[0], intr[1], intr[2], intr[3], w, h)
+
+
+def _make_frame(stamp_ns: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndarray,
+                intr: Intrinsics, where: str, semantic: np.ndarray | None = None,
+                instance: np.ndarray | None = None) -> Frame:
+    if rgb.shape[:2] != depth.shape:
+        raise FormatError(f"{where}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
+                          f"{depth.shape[1]}x{depth.shape[0]}")
+    try:
+        return Frame(int(stamp_ns), rgb, depth, pose, intr, semantic, instance).validate()
+    except ValueError as err:
+        raise FormatError(f"{where}: {err}") from None
+
+
+def _subsample(items: list, cfg: FolderConfig) -> list:
+    items = items[:: cfg.stride]
+    return items[: cfg.max_frames] if cfg.max_frames else items
+
+
+# ---------------------------------------------------------------- pose files
+
+def _load_rows(path: Path, ncols: Sequence[int]) -> np.ndarray:
+    """Numeric rows of a text file, skipping blanks and '#' comments."""
+    if not path.is_file():
+        raise FormatError(f"{path}: file not found")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            vals = [float(v) for v in line.replace(",", " ").split()]
+        except ValueError:
+            raise FormatError(f"{path}:{n}: not numbers: {line!r}") from None
+        if len(vals) not in ncols:
+            raise FormatError(f"{path}:{n}: expected {' or '.join(map(str, ncols))} numbers, "
+                              f"got {len(vals)}")
+        rows.append(vals)
+    if not rows:
+        raise FormatError(f"{path}: no poses")
+    return np.array(rows, dtype=np.float64)
+
+
+def _pose(T: np.ndarray, where: str) -> np.ndarray:
+    try:
+        return check_pose(T, where)
+    except ValueError as err:
+        raise FormatError(str(err)) from None
+
+
+def read_tq_poses(path: Path) -> np.ndarray:
+    """``tx ty tz qx qy qz qw`` a line (slambook pose.txt) -> (N, 4, 4) T_wc."""
+    rows = _load_rows(path, (7,))
+    return np.stack([_pose(pose_from_tq(r[:3], r[3:]), f"{path} row {i + 1}")
+                     for i, r in enumerate(rows)])
+
+
+def read_tum_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """TUM ``t tx ty tz qx qy qz qw`` -> (times in s, (N, 4, 4) T_wc), sorted by time."""
+    rows = _load_rows(path, (8,))
+    rows = rows[np.argsort(rows[:, 0], kind="stable")]
+    poses = np.stack([_pose(pose_from_tq(r[1:4], r[4:]), f"{path} t={r[0]:.6f}")
+                      for r in rows])
+    return rows[:, 0], poses
+
+
+def read_matrix_rows(path: Path) -> np.ndarray:
+    """Replica ``traj_w_c.txt``: 16 numbers (row-major 4x4) a line -> (N, 4, 4)."""
+    rows = _load_rows(path, (16,))
+    return np.stack([_pose(r.reshape(4, 4), f"{path} row {i + 1}")
+                     for i, r in enumerate(rows)])
+
+
+def read_redwood_log(path: Path) -> dict[int, np.ndarray]:
+    """Open3D/Redwood ``.log``: a header ``i j n`` then 4 rows of T_wc, per frame."""
+    if not path.is_file():
+        raise FormatError(f"{path}: file not found")
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    if len(lines) % 5:
+        raise FormatError(f"{path}: {len(lines)} non-empty lines, expected 5 per frame "
+                          "(header + 4 matrix rows)")
+    out = {}
+    for k in range(0, len(lines), 5):
+        try:
+            idx = int(lines[k][0])
+            T = np.array([[float(v) for v in row] for row in lines[k + 1:k + 5]])
+        except (ValueError, IndexError):
+            raise FormatError(f"{path}: malformed block at line {k + 1}") from None
+        if T.shape != (4, 4):
+            raise FormatError(f"{path}: block at line {k + 1} is not 4x4")
+        out[idx] = _pose(T, f"{path} frame {idx}")
+    return out
+
+
+def read_redwood_intrinsics(path: Path) -> Intrinsics:
+    """Open3D camera json (``intrinsic_matrix`` column-major, width, height)."""
+    try:
+        d = json.loads(path.read_text())
+        K = np.asarray(d["intrinsic_matrix"], dtype=np.float64).reshape(3, 3).T
+        return Intrinsics.from_matrix(K, int(d["width"]), int(d["height"]))
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise FormatError(f"{path}: not an Open3D camera json ({err})") from None
+
+
+# ---------------------------------------------------------------- Replica
+
+_NUM_RE = re.compile(r"(\d+)(?=\.[^.]+$)")
+
+
+def _indexed(folder: Path, prefix: str) -> dict[int, Path]:
+    """Files ``{prefix}{i}.ext`` in ``folder`` keyed by i."""
+    out = {}
+    if folder.is_dir():
+        for p in folder.iterdir():
+            if p.name.startswith(prefix) and p.suffix.lower() in IMAGE_EXTS:
+                m = _NUM_RE.search(p.name[len(prefix):])
+                if m and p.name[len(prefix):].startswith(m.group(1)):
+                    out[int(m.group(1))] = p
+    return out
