@@ -143,6 +143,13 @@ def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[
     return [scene(cfg, s, frames) for s in tqdm(scene_seeds, desc="scenes", unit="scene")]
 
 
+NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
+         '(discovery.mode_split) use per-frame inputs only (the camera colour and the clusters), '
+         'so the backbone_logits row gets them too; compare neurncd with backbone_logits for what '
+         'the Embedding-NeRF adds, and no_colour_no_split / backbone_logits_no_colour_no_split for'
+         ' the discovery before them. Defaults chosen on tuning seeds 500-501 only (not the full '
+         '--tune search). Novel id stability is not measured here.')
+
 METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
 
 
@@ -348,6 +355,7 @@ def main() -> None:
                     res[f"{name}_iou_{c}"] = x
             else:
                 res[f"{name}_{k}"] = v
+    res["notes"] = NOTES
     res["cores"] = os.cpu_count()
     res["commit"] = commit()
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,14 @@ Per processed frame (:meth:`Discoverer.process`):
    ``segment_novelty`` (default) uncertainty is decided per segment first: the
    segments above the entropy threshold leave their clusters and are clustered
    among themselves, so a confident majority cannot absorb an uncertain
-   minority that leans to its class (a picture the backbone half calls wall);
+   minority that leans to its class (a picture the backbone half calls wall).
+   With ``mode_split`` (default) a known cluster that holds at most
+   ``mode_split_share`` of the pixels of the largest known cluster of its class
+   and whose pixel-weighted mean descriptor (colour part included) is more than
+   ``mode_split_distance`` from that one's is novel instead: a picture the
+   backbone confidently calls wall still forms its own, small, distant cluster,
+   while a class that merely varies gives clusters close to its dominant one or
+   of comparable size;
 5. novel ids start at ``classes.NOVEL_ID_START`` and stay stable: after a
    re-clustering, novel clusters are matched to the previous novel ids by the
    overlap of their member segments (Hungarian on overlap counts, accepted if
