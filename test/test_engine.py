@@ -280,3 +280,31 @@ def test_embedding_spec_round_trip_and_errors():
             EmbeddingSpec.from_json(text)
     with pytest.raises(ValueError, match="spec says"):
         spec.check(np.zeros((4, 4, 9), np.float32))
+
+
+def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges(
+        cfg, backbone, frames, monkeypatch):
+    """The colour descriptor (modulation.colour_weight) needs the view's colour even
+    when the segmentation's colour edges are off."""
+    from neurncd_ros.core.discovery.labeller import Discoverer
+    seen = []
+    orig = Discoverer.process_segments
+
+    def spy(self, segments, embedding, entropy, colour=None):
+        seen.append(colour)
+        return orig(self, segments, embedding, entropy, colour)
+
+    monkeypatch.setattr(Discoverer, "process_segments", spy)
+    f = frames[10]
+    emb = resize_to(backbone.embed(f.rgb, f.depth), 36, 48)
+    view = ViewInput(f.stamp_ns, f.depth, f.intrinsics, emb, uncertainty.entropy(emb), f.rgb)
+    for weight, wanted in ((2.0, True), (0.0, False)):
+        c = config.from_nested({**cfg.to_nested(),
+                                "segmentation": {**cfg.to_nested()["segmentation"],
+                                                 "colour_edges": False},
+                                "modulation": {**cfg.to_nested()["modulation"],
+                                               "colour_weight": weight}})
+        st = DiscoveryStage(c, c.discovery_node)
+        st.set_spec(backbone.spec)
+        st.label(view)
+        assert (seen[-1] is not None) == wanted

@@ -190,17 +190,18 @@ def test_memory_is_bounded_and_keeps_recent_frames():
 
 def test_descriptor_modes_and_pooling():
     seg, emb, ent, _ = _frame(LAYOUT, 0)
-    both = segment_descriptors(seg, emb, ent, ModulationConfig(pooling="softmax"))
+    both = segment_descriptors(seg, emb, ent,
+                               ModulationConfig(pooling="softmax", colour_weight=0.0))
     assert both.shape == (len(LAYOUT), S + 2) and both.dtype == np.float32
     assert np.allclose(both[:, :S].sum(1), 1.0, atol=1e-5)
-    emb_only = segment_descriptors(seg, emb, ent, ModulationConfig(mode="embedding",
-                                                                   pooling="softmax"))
+    emb_only = segment_descriptors(seg, emb, ent, ModulationConfig(
+        mode="embedding", colour_weight=0.0, pooling="softmax"))
     assert np.allclose(emb_only, both[:, :S])
-    ent_only = segment_descriptors(seg, emb, ent, ModulationConfig(mode="entropy",
-                                                                   entropy_weight=1.0))
+    ent_only = segment_descriptors(seg, emb, ent, ModulationConfig(
+        mode="entropy", colour_weight=0.0, entropy_weight=1.0))
     stats, _ = segment_stats(seg, emb, ent, ModulationConfig().entropy_interior)
     assert np.allclose(ent_only[:, 0], stats.mean_entropy / np.log(S), atol=1e-6)
-    logit = segment_descriptors(seg, emb, ent, ModulationConfig(pooling="logits",
+    logit = segment_descriptors(seg, emb, ent, ModulationConfig(pooling="logits", colour_weight=0.0,
                                                                 mode="embedding"))
     assert np.allclose(np.linalg.norm(logit, axis=1), 1.0, atol=1e-5)
     # Novel-object segments carry more entropy than the known ones.
@@ -264,3 +265,73 @@ def test_bad_inputs_raise_value_error():
                            np.zeros((H, 3)))
     with pytest.raises(ValueError, match="NYU-13"):
         Discoverer(DiscoveryConfig(), np.array([0, 50]))
+
+
+def _paint(kinds, colours):
+    """uint8 RGB image: each kind's colour (from an RGB triple), small pixel noise."""
+    rng = np.random.default_rng(7)
+    img = np.zeros((H, W, 3), np.float64)
+    for kind, rgb in colours.items():
+        img[kinds == kind] = rgb
+    img += rng.normal(0, 2.0, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def test_colour_and_mode_split_find_a_picture_the_logits_call_wall():
+    """A picture whose logits are confidently "wall" differs from the wall only in
+    colour: with the colour descriptor and mode_split it is a novel class; without
+    either it is wall. A wall of two similar shades and a floor of two different
+    colours of comparable size (known classes that vary) stay one known class each."""
+    layout = [("wall", (r, r + 10, c, c + 40)) for r in (0, 10, 20, 30) for c in (0, 40)]
+    layout += [("picture", (2, 10, 2 + c, 12 + c)) for c in (0, 20)]
+    layout += [("floor", (45, 60, 0, 40)), ("floor2", (45, 60, 40, 80))]
+    seg = np.full((H, W), -1, np.int32)
+    kinds = np.full((H, W), "", dtype=object)
+    for i, (kind, (r0, r1, c0, c1)) in enumerate(layout):
+        seg[r0:r1, c0:c1] = i
+        kinds[r0:r1, c0:c1] = kind
+    kinds[(kinds == "wall") & (np.arange(W)[None, :] >= 40)] = "wall2"
+    rng = np.random.default_rng(0)
+    emb = _logits("wall", rng, H * W).reshape(H, W, S)
+    emb[45:] = _logits("floor", rng, 15 * W).reshape(15, W, S)
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    rgb = _paint(kinds, {"wall": (220, 210, 190), "wall2": (205, 196, 178),
+                         "picture": (30, 40, 120), "floor": (120, 80, 40),
+                         "floor2": (90, 90, 95)})
+    kinds[kinds == "wall2"] = "wall"
+    kinds[kinds == "floor2"] = "floor"
+    cfg = dict(STAND_IN, min_cluster_segments=1)
+    with_both = _discoverer(**cfg).process_segments(seg, emb, ent, rgb)
+    assert _label_of(with_both, kinds, "picture") == (NOVEL_ID_START, 1.0)
+    for kind in ("wall", "floor"):
+        assert _label_of(with_both, kinds, kind) == (CLASS_ID[kind], 1.0)
+    no_split = _discoverer(**cfg, mode_split=False).process_segments(seg, emb, ent, rgb)
+    assert _label_of(no_split, kinds, "picture") == (CLASS_ID["wall"], 1.0)
+    d = Discoverer(DiscoveryConfig(min_cluster_pixels=50, **cfg), CHANNEL_TO_ID,
+                   mcl_cfg=MCLConfig(k=10), mod_cfg=ModulationConfig(colour_weight=0.0))
+    assert _label_of(d.process_segments(seg, emb, ent, rgb), kinds, "picture") == \
+        (CLASS_ID["wall"], 1.0)
+
+
+def test_colour_stats_and_bad_colour():
+    seg = np.zeros((H, W), np.int32)
+    seg[:, W // 2:] = 1
+    emb = np.zeros((H, W, S), np.float32)
+    ent = np.zeros((H, W), np.float32)
+    rgb = np.zeros((H, W, 3), np.uint8)
+    rgb[:, W // 2:] = 255
+    stats, _ = segment_stats(seg, emb, ent, colour=rgb)
+    np.testing.assert_allclose(stats.mean_lab[:, 0], [0.0, 1.0], atol=1e-3)
+    np.testing.assert_allclose(stats.std_lab, 0.0, atol=1e-3)
+    d = segment_descriptors(seg, emb, ent, ModulationConfig(colour_weight=2.0, colour_std=True),
+                            colour=rgb)
+    assert d.shape == (2, S + 2 + 6)
+    np.testing.assert_allclose(d[1, S + 2], 2.0, atol=1e-3)
+    # No colour image: same width, zero colour part.
+    d0 = segment_descriptors(seg, emb, ent, ModulationConfig(colour_weight=2.0))
+    assert d0.shape == (2, S + 2 + 3) and not d0[:, S + 2:].any()
+    with pytest.raises(ValueError, match="colour must be"):
+        segment_stats(seg, emb, ent, colour=rgb[:10])
+    with pytest.raises(ValueError, match="uint8"):
+        segment_stats(seg, emb, ent, colour=rgb.astype(np.float32))

@@ -21,7 +21,14 @@ Per processed frame (:meth:`Discoverer.process`):
    ``segment_novelty`` (default) uncertainty is decided per segment first: the
    segments above the entropy threshold leave their clusters and are clustered
    among themselves, so a confident majority cannot absorb an uncertain
-   minority that leans to its class (a picture the backbone half calls wall);
+   minority that leans to its class (a picture the backbone half calls wall).
+   With ``mode_split`` (default) a known cluster that holds at most
+   ``mode_split_share`` of the pixels of the largest known cluster of its class
+   and whose pixel-weighted mean descriptor (colour part included) is more than
+   ``mode_split_distance`` from that one's is novel instead: a picture the
+   backbone confidently calls wall still forms its own, small, distant cluster,
+   while a class that merely varies gives clusters close to its dominant one or
+   of comparable size;
 5. novel ids start at ``classes.NOVEL_ID_START`` and stay stable: after a
    re-clustering, novel clusters are matched to the previous novel ids by the
    overlap of their member segments (Hungarian on overlap counts, accepted if
@@ -85,6 +92,14 @@ class DiscoveryConfig:
                                   "above entropy_threshold leave their clusters and are "
                                   "clustered among themselves (novel candidates), so a "
                                   "confident majority cannot absorb them")
+    mode_split: bool = param(True, "a known cluster that is much smaller than the largest "
+                             "known cluster of the same class and whose mean descriptor is "
+                             "far from it becomes novel (a picture the backbone calls wall)")
+    mode_split_share: float = param(0.1, "mode_split: at most this share of the dominant "
+                                    "cluster's pixels", lo=0.0, hi=1.0)
+    mode_split_distance: float = param(0.3, "mode_split: Euclidean distance between the two "
+                                       "clusters' pixel-weighted mean descriptors above this",
+                                       lo=0.0, hi=100.0)
     match_overlap: float = param(0.3, "share of shared member segments to keep a novel id",
                                  lo=0.0, hi=1.0)
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
@@ -177,15 +192,18 @@ class Discoverer:
         # changes (geoseg's appearance and colour edges): flush pictures, TVs, windows
         # and doors leave the wall.
         segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
-        labels = self.process_segments(segments, embedding, entropy)
+        labels = self.process_segments(segments, embedding, entropy, colour)
         self.last_stamp_ns = int(stamp_ns)
         return labels
 
     def process_segments(self, segments: np.ndarray, embedding: np.ndarray,
-                         entropy: np.ndarray) -> np.ndarray:
-        """As :meth:`process` but with a given segmentation (ids 0..n-1, -1 = none)."""
-        stats, mean_logit = segment_stats(segments, embedding, entropy,
-                                          self.mod_cfg.entropy_interior)
+                         entropy: np.ndarray, colour: np.ndarray | None = None) -> np.ndarray:
+        """As :meth:`process` but with a given segmentation (ids 0..n-1, -1 = none).
+
+        ``colour`` feeds the descriptor's colour part (``modulation.colour_weight``)."""
+        stats, mean_logit = segment_stats(
+            segments, embedding, entropy, self.mod_cfg.entropy_interior,
+            colour if self.mod_cfg.colour_weight > 0 else None)
         desc = descriptors_from_stats(stats, mean_logit, self.mod_cfg)
         present = stats.pixels > 0
         n = int(stats.pixels.size)
@@ -271,6 +289,8 @@ class Discoverer:
         share = hist.max(axis=1) / np.maximum(hist.sum(axis=1), 1)
         nseg = np.bincount(clusters, minlength=m)
         known = (ent <= cfg.entropy_threshold * np.log(self.S)) & (share >= cfg.majority_share)
+        if cfg.mode_split:
+            known &= ~self._distinct_modes(clusters, known, hist.argmax(axis=1), pix, m)
         novel = ~known & (nseg >= cfg.min_cluster_segments) & (pix >= cfg.min_cluster_pixels)
         cluster_label = np.full(m, UNDECIDED, np.int64)
         cluster_label[known] = self.channel_to_id[hist[known].argmax(axis=1)]
@@ -278,6 +298,32 @@ class Discoverer:
         ids = self._match_novel([mem.uid[clusters == c] for c in novel_idx])
         cluster_label[novel_idx] = ids
         return cluster_label[clusters]
+
+    def _distinct_modes(self, clusters: np.ndarray, known: np.ndarray, channel: np.ndarray,
+                        pix: np.ndarray, m: int) -> np.ndarray:
+        """(m,) bool: known clusters that are a separate, small mode of their class.
+
+        Why: a picture or window on a wall is confidently "wall" to the backbone, so
+        its cluster passes the entropy and majority tests; but it is its own cluster,
+        far (in descriptor space, colour included) from the wall's dominant cluster
+        and much smaller. A class that merely varies forms clusters close to its
+        dominant one, or of comparable size, and stays known.
+        """
+        mem = self._mem
+        cent = np.zeros((m, mem.desc.shape[1]))
+        np.add.at(cent, clusters, mem.desc * mem.pixels[:, None])
+        cent /= np.maximum(pix, 1)[:, None]
+        out = np.zeros(m, bool)
+        for ch in np.unique(channel[known]).tolist():
+            idx = np.flatnonzero(known & (channel == ch))
+            if idx.size < 2:
+                continue
+            dom = idx[np.argmax(pix[idx])]
+            rest = idx[idx != dom]
+            far = np.linalg.norm(cent[rest] - cent[dom], axis=1) > self.cfg.mode_split_distance
+            small = pix[rest] <= self.cfg.mode_split_share * pix[dom]
+            out[rest[far & small]] = True
+        return out
 
     def _match_novel(self, members: list[np.ndarray]) -> np.ndarray:
         """Stable ids for novel clusters given their member uids (Hungarian on overlap)."""

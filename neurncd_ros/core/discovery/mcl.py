@@ -30,7 +30,7 @@ fragments into singletons on large graphs.
 Defaults. MCL depends sharply on the inflation and on the affinity's
 contrast: a correct MCL at the paper's inflation 12 on a top-30 graph of this
 project's segment descriptors returns near-singletons. The shipped defaults
-(exp affinity, eta 6, inflation 1.6, k 30, constant self-loop 1) were chosen
+(exp affinity, eta 6, inflation 1.4, k 30, constant self-loop 1) were chosen
 on the tuning seeds only, first at the descriptor level (``bench/discovery.py``
 ``tune_*``: adjusted Rand index of segment clusters against their majority
 ground-truth class) and then end to end (``bench/ncd.py --tune``, mean mIoU
@@ -61,7 +61,7 @@ class MCLConfig:
     eta: float = param(6.0, "exp affinity: exp(-eta * Euclidean distance)",
                        lo=0.0, hi=100.0)
     k: int = param(30, "neighbours kept per node in the affinity graph (top-k)", lo=1, hi=1000)
-    inflation: float = param(1.6, "inflation power r (higher = more, smaller clusters)",
+    inflation: float = param(1.4, "inflation power r (higher = more, smaller clusters)",
                              lo=1.01, hi=50.0)
     expansion: int = param(2, "expansion power e (matrix power per iteration)", lo=2, hi=6)
     loop_mode: str = param("constant", "self-loop weight: self_loop times the node's strongest "

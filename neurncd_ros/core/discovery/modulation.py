@@ -14,7 +14,13 @@ intends, and what is implemented here, is a *pooled* descriptor per segment:
   structure but may be negative);
 - entropy part: mean and standard deviation of the per-pixel entropy divided by
   log(S) (so in [0, 1]) and scaled by ``entropy_weight``; novel objects are
-  typically high-entropy regions, which is what the entropy modulates.
+  typically high-entropy regions, which is what the entropy modulates;
+- colour part (``colour_weight`` > 0, needs the RGB image): the segment's mean
+  CIELAB colour (and optionally its std), scaled by ``colour_weight``. The
+  backbone's logits call a picture, a window or a TV on a wall "wall" with
+  confidence, so the embedding part cannot tell them apart; their colour
+  usually differs from the wall's. It is a per-frame input, the same whether
+  the embedding is rendered by the field or taken from the backbone.
 
 ``mode`` selects the paper's ablations: "both", "embedding" only, "entropy"
 only (the entropy-only descriptor is [mean, std], so under cosine affinity it
@@ -56,6 +62,12 @@ class ModulationConfig:
                                   "pixels at least this far from its border (the rendered "
                                   "entropy peaks along every boundary; 0 = all pixels; "
                                   "segments without interior use all)", lo=0, hi=32, unit="px")
+    colour_weight: float = param(2.0, "scale of the segment's mean CIELAB colour (L, a, b "
+                                 "divided by 100) appended to the descriptor; 0 = off, no "
+                                 "colour part (when no colour image is given the part is 0)",
+                                 lo=0.0, hi=100.0)
+    colour_std: bool = param(False, "with colour_weight > 0, also append the per-channel "
+                             "standard deviation of the segment's Lab colour")
 
 
 @dataclasses.dataclass
@@ -67,6 +79,8 @@ class SegmentStats:
     std_entropy: np.ndarray     # (n,) float32 entropy standard deviation (nats)
     argmax_hist: np.ndarray     # (n, S) int64 count of pixels whose embedding argmax is k
     mean_prob: np.ndarray       # (n, S) float32 mean softmax
+    mean_lab: np.ndarray | None = None  # (n, 3) float32 mean CIELAB / 100 (None: no colour)
+    std_lab: np.ndarray | None = None   # (n, 3) float32 its standard deviation / 100
 
 
 def _check(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
@@ -101,14 +115,34 @@ def interior(segments: np.ndarray, radius: int) -> np.ndarray:
     return inside
 
 
+def lab_colour(colour: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) float32 CIELAB of a uint8 RGB image, divided by 100 (L in [0, 1]).
+
+    Why Lab: distances in it are roughly perceptual, so a picture or window on a
+    wall of one backbone class differs from the wall by a comparable amount
+    whatever its hue; shading changes L more than a and b.
+    """
+    colour = np.asarray(colour)
+    if colour.ndim != 3 or colour.shape[:2] != tuple(shape) or colour.shape[2] != 3:
+        raise ValueError(f"colour must be (H, W, 3) with (H, W) = {tuple(shape)}, got "
+                         f"{colour.shape}")
+    if colour.dtype != np.uint8:
+        raise ValueError(f"colour must be uint8 RGB, got dtype {colour.dtype}")
+    import cv2
+    rgb = colour.astype(np.float32) * np.float32(1.0 / 255.0)
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2Lab) * np.float32(0.01)
+
+
 def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
-                  entropy_interior: int = 0) -> tuple[SegmentStats, np.ndarray]:
+                  entropy_interior: int = 0, colour: np.ndarray | None = None
+                  ) -> tuple[SegmentStats, np.ndarray]:
     """Per-segment stats plus the mean centred logits (n, S); ids 0..n-1, -1 = none.
 
     Logits are centred per pixel (their channel mean subtracted) because softmax
     ignores a common offset, so only the centred part carries information.
     ``entropy_interior`` > 0 takes the entropy statistics over each segment's
-    interior (:func:`interior`), where it has one.
+    interior (:func:`interior`), where it has one. ``colour`` (H, W, 3) uint8 RGB,
+    optional, adds each segment's mean and std Lab colour (:func:`lab_colour`).
     """
     segments, embedding, entropy = _check(segments, embedding, entropy)
     n = int(segments.max()) + 1 if segments.size else 0
@@ -142,6 +176,15 @@ def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarr
     std_ent = np.sqrt(np.maximum(ent_sq / np.maximum(ent_n, 1) - mean_ent ** 2, 0.0))
     stats = SegmentStats(counts, mean_ent.astype(np.float32), std_ent.astype(np.float32), hist,
                          (mean_prob * inv[:, None]).astype(np.float32))
+    if colour is not None:
+        lab = lab_colour(colour, segments.shape).reshape(-1, 3)[sel].astype(np.float64)
+        s1 = np.stack([np.bincount(ids, weights=lab[:, c], minlength=n) for c in range(3)], 1)
+        s2 = np.stack([np.bincount(ids, weights=lab[:, c] ** 2, minlength=n)
+                       for c in range(3)], 1)
+        mean_lab = s1 * inv[:, None]
+        stats.mean_lab = mean_lab.astype(np.float32)
+        stats.std_lab = np.sqrt(np.maximum(s2 * inv[:, None] - mean_lab ** 2, 0.0)
+                                ).astype(np.float32)
     return stats, (mean_logit * inv[:, None]).astype(np.float32)
 
 
@@ -162,13 +205,25 @@ def descriptors_from_stats(stats: SegmentStats, mean_logit: np.ndarray,
         if cfg.entropy_std:
             ent.append(stats.std_entropy[:, None] * scale)
         parts.append(np.concatenate(ent, axis=1))
+    if cfg.colour_weight > 0:
+        # Colour part: the same width with or without a colour image, so segments
+        # of frames with and without colour can share one memory.
+        n = mean_logit.shape[0]
+        lab = stats.mean_lab if stats.mean_lab is not None else np.zeros((n, 3), np.float32)
+        col = [lab * cfg.colour_weight]
+        if cfg.colour_std:
+            sd = stats.std_lab if stats.std_lab is not None else np.zeros((n, 3), np.float32)
+            col.append(sd * cfg.colour_weight)
+        parts.append(np.concatenate(col, axis=1))
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
 def segment_descriptors(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
-                        cfg: ModulationConfig = ModulationConfig()) -> np.ndarray:
+                        cfg: ModulationConfig = ModulationConfig(),
+                        colour: np.ndarray | None = None) -> np.ndarray:
     """(n, D) float32 descriptor per segment id 0..n-1 (empty ids get a zero embedding part)."""
-    stats, mean_logit = segment_stats(segments, embedding, entropy, cfg.entropy_interior)
+    stats, mean_logit = segment_stats(segments, embedding, entropy, cfg.entropy_interior,
+                                      colour if cfg.colour_weight > 0 else None)
     return descriptors_from_stats(stats, mean_logit, cfg)
 
 

@@ -161,7 +161,8 @@ class DiscoveryStage:
                            h, w)
         ent = resize_to(ent, h, w)
         rgb = None
-        if view.rgb is not None and self.cfg.segmentation.colour_edges:
+        if view.rgb is not None and (self.cfg.segmentation.colour_edges
+                                     or self.cfg.modulation.colour_weight > 0):
             rgb = view.rgb
             if rgb.shape[:2] != (h, w):
                 rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
