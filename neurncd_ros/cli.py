@@ -1,6 +1,6 @@
 """`neurncd`: the offline tool. Everything the nodes do, on files, without DDS.
 
-Subcommands: synth, convert, info, train-backbone, run, demo, params, bench.
+Subcommands: synth, convert, info, train-backbone, run, eval, report, demo, params, bench.
 Each long job shows progress and ends with a short summary.
 """
 
@@ -160,6 +160,28 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    """``neurncd eval``: the paper's tables (and ablations, baselines) over bags with GT."""
+    from .core.eval import evaluate
+
+    cfg = load_config(args)
+    _set_threads(cfg)
+    per_bag = [evaluate.evaluate_bag(b, cfg, ablation=args.ablation, baselines=args.baselines)
+               for b in args.bag]
+    result = evaluate.write_eval(args.out, per_bag)
+    print(evaluate.summary(result))
+    print(f"wrote {args.out}/eval.json, tables.md (Tables 1-3); neurncd report {args.out} "
+          "renders the HTML page")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .core.eval import report
+
+    print(f"wrote {report.render(args.dir)}")
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     """``make demo``: a held-out synthetic scene written as a bag, then the engine on it."""
     import shutil
@@ -277,6 +299,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output folder (default run.out_dir)")
     _add_config_args(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("eval", help="the paper's Tables 1-3 on bags with ground truth "
+                       "(runs the engine offline once per bag)")
+    p.add_argument("--bag", action="append", required=True,
+                   help="bag with /camera/semantic/image_raw (repeat for several)")
+    p.add_argument("--ablation", action="store_true", help="add Table 3's ablation rows")
+    p.add_argument("--baselines", action="store_true", help="add the explicit-map baseline")
+    p.add_argument("--out", required=True)
+    _add_config_args(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("report", help="one self-contained HTML page from an eval folder")
+    p.add_argument("dir")
+    p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="make a synthetic scene and run the whole pipeline on "
                        "it; writes overlays and metrics")

@@ -1,0 +1,136 @@
+"""``neurncd report DIR``: one self-contained HTML page from an eval folder (the tables,
+a picture grid in the contract's palette, the online curve, the confusion matrix).
+
+Images are PNGs inlined as base64 so the page is one file to share."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import classes
+
+
+def _png(img: np.ndarray) -> str:
+    import cv2
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[:, :, ::-1]))
+    if not ok:
+        raise ValueError("could not encode a picture")
+    return base64.b64encode(buf.tobytes()).decode()
+
+
+def _fig_png(fig) -> str:
+    b = io.BytesIO()
+    fig.savefig(b, format="png", dpi=90, bbox_inches="tight")
+    return base64.b64encode(b.getvalue()).decode()
+
+
+def _grid(pics: dict) -> list[str]:
+    """Rows colour | ground truth | backbone | baseline | ours, one per kept frame."""
+    keys = sorted({k.rsplit("_", 1)[0] for k in pics})
+    rows = []
+    for k in keys:
+        tiles = [pics[f"{k}_rgb"]]
+        for part in ("gt", "backbone", "baseline", "ours"):
+            if f"{k}_{part}" in pics:
+                tiles.append(classes.colourise(pics[f"{k}_{part}"]))
+        rows.append(_png(np.concatenate(tiles, axis=1)))
+    return rows
+
+
+def _md_to_html(md: str) -> str:
+    out, in_table = [], False
+    for line in md.splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            if set("".join(cells)) <= set("-"):
+                continue
+            tag = "th" if not in_table else "td"
+            if not in_table:
+                out.append("<table>")
+                in_table = True
+            out.append("<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in cells)
+                       + "</tr>")
+            continue
+        if in_table:
+            out.append("</table>")
+            in_table = False
+        if line.startswith("### "):
+            out.append(f"<h3>{html.escape(line[4:])}</h3>")
+        elif line.strip():
+            out.append(f"<p>{html.escape(line)}</p>")
+    if in_table:
+        out.append("</table>")
+    return "\n".join(out)
+
+
+def render(eval_dir: str | Path, out: str | Path | None = None, notes: str = "") -> Path:
+    """Write ``report.html`` in ``eval_dir`` (or ``out``); returns its path."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d = Path(eval_dir)
+    if not (d / "eval.json").is_file():
+        raise FileNotFoundError(f"{d}/eval.json not found: run neurncd eval --out {d} first")
+    res = json.loads((d / "eval.json").read_text())
+    md = (d / "tables.md").read_text() if (d / "tables.md").is_file() else ""
+    pics = {}
+    if (d / "pictures.npz").is_file():
+        with np.load(d / "pictures.npz") as z:
+            pics = {k: z[k] for k in z.files}
+    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>NeurNCD evaluation"
+             "</title><style>body{font-family:sans-serif;max-width:1400px;margin:auto}"
+             "table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;"
+             "padding:2px 6px;font-size:13px}img{max-width:100%}</style></head><body>",
+             "<h1>NeurNCD evaluation</h1>",
+             f"<p>{len(res['bags'])} bag(s): " + html.escape(", ".join(
+                 b.get("name", "") for b in res["bags"])) + "</p>"]
+    if notes:
+        parts.append(notes)
+    parts.append(_md_to_html(md))
+    grid = _grid(pics)
+    if grid:
+        parts.append("<h2>Sampled frames: colour | ground truth | backbone | explicit "
+                     "baseline | ours</h2>")
+        parts += [f"<img src='data:image/png;base64,{g}'><br>" for g in grid]
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for b in res["bags"]:
+        c = b.get("curve") or []
+        if c:
+            k = [p["keyframes"] for p in c]
+            ax.plot(k, [p["miou_known"] for p in c], "b-", alpha=0.6)
+            ax.plot(k, [p["miou_novel"] for p in c], "r-", alpha=0.6)
+    ax.set_xlabel("keyframes seen")
+    ax.set_ylabel("mIoU so far (%)")
+    ax.set_title("known (blue) and novel (red) mIoU online, one line per bag")
+    parts.append("<h2>Discovery online</h2>"
+                 f"<img src='data:image/png;base64,{_fig_png(fig)}'>")
+    plt.close(fig)
+    confs = [np.asarray(b["confusion"], np.float64) for b in res["bags"] if b.get("confusion")]
+    if confs:
+        conf = sum(confs)
+        norm = conf / np.maximum(conf.sum(axis=1, keepdims=True), 1)
+        names = [classes.class_name(i) for i in range(1, classes.NUM_CLASSES + 1)]
+        fig, ax = plt.subplots(figsize=(7, 6))
+        ax.imshow(norm, cmap="Blues", vmin=0, vmax=1)
+        ax.set_xticks(range(len(names) + 1), names + ["none"], rotation=90, fontsize=8)
+        ax.set_yticks(range(len(names)), names, fontsize=8)
+        ax.set_xlabel("prediction (novel clusters after Hungarian matching)")
+        ax.set_ylabel("ground truth")
+        for i in range(norm.shape[0]):
+            for j in range(norm.shape[1]):
+                if norm[i, j] >= 0.05:
+                    ax.text(j, i, f"{norm[i, j]:.2f}", ha="center", va="center", fontsize=6)
+        parts.append("<h2>Confusion (ours, row-normalised, all bags)</h2>"
+                     f"<img src='data:image/png;base64,{_fig_png(fig)}'>")
+        plt.close(fig)
+    parts.append("</body></html>")
+    path = Path(out) if out else d / "report.html"
+    path.write_text("\n".join(parts))
+    return path
