@@ -11,7 +11,9 @@
 
 All message <-> numpy conversion goes through :mod:`neurncd_ros.core.msgconv`.
 Every failure to read a bag (missing, truncated, corrupt) raises
-:class:`BagError` naming the file.
+:class:`BagError` naming the file. Writer, reader and raw replay stay in one
+module (over 500 lines) because they share the bag's topic/type table, its QoS
+records and the error handling that names the file.
 """
 
 from __future__ import annotations
