@@ -185,3 +185,30 @@ def test_node_health_logs_every_severity_from_one_logger(ros_node):
         h.problem(f"kind{level}", f"a problem at level {level}", level)
     h.fail("training", "thread died")
     assert h.problems["kind0"] == 2 and h.failed
+
+
+def test_mapper_reports_when_it_sees_the_embedding_publisher(tmp_path):
+    """The mapper's diagnostics say whether the embedding node is seen yet
+    (`upstream_publishers`), which bringup waits for before it plays a bag."""
+    domain = rosutil.domain(13)
+    apply_ros_env(domain)
+    import rclpy
+    from sensor_msgs.msg import Image
+
+    from neurncd_ros.nodes.common import sensor_qos
+
+    rclpy.init()
+    node = rclpy.create_node("upstream_watcher")
+    log = tmp_path / "mapper.log"
+    proc = start(["-m", "neurncd_ros.nodes.mapper"], ros_env(domain), log)
+    try:
+        diag = diagnostics_of(node, ("mapper",))
+        assert spin_until(node, lambda: "mapper" in diag, 120), log.read_text()
+        assert diag["mapper"]["upstream_publishers"] == "0"
+        node.create_publisher(Image, "/neurncd/embedding", sensor_qos(1))
+        assert spin_until(node, lambda: diag["mapper"]["upstream_publishers"] == "1", 60), \
+            log.read_text()
+    finally:
+        stop(proc)
+        node.destroy_node()
+        rclpy.shutdown()

@@ -6,7 +6,8 @@ GIL), all with one parameter file:
 
 - a node that exits stops the others (bringup exits with its code);
 - with ``--bag``, the replay starts once every node reports on /diagnostics
-  (it is up and subscribed; at most ``--ready-timeout``), so nothing the bag
+  (it is up and subscribed) and the mapper and discovery see their upstream
+  node's publisher (at most ``--ready-timeout``), so nothing the bag
   holds is published before a node can take it; when the replay reaches the
   end of the bag (exit 0) the
   nodes keep running until they have labelled what they received: until
@@ -70,6 +71,7 @@ class DrainWatcher:
                    signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("bringup", context=self._context)
         self._latest: dict[str, tuple[float, int]] = {}
+        self._connected: dict[str, bool] = {}
         self._lock = threading.Lock()
         self.node.create_subscription(DiagnosticArray, topic, self._on_diag, 50)
         self._executor = SingleThreadedExecutor(context=self._context)
@@ -91,11 +93,16 @@ class DrainWatcher:
             if values is not None:
                 with self._lock:
                     self._latest[name] = (now, int(values.get("pending", "1") or 1))
+                    # A node that reports its upstream publishers is connected once it
+                    # sees one (the mapper the embedding node, discovery the mapper).
+                    self._connected[name] = int(values.get("upstream_publishers", "1") or 0) > 0
 
     def ready(self) -> bool:
-        """Every node has reported at least once (it is up, its subscriptions made)."""
+        """Every node has reported (it is up, its subscriptions made) and sees its upstream
+        node's publisher, so the first frames of a bag are not lost to DDS discovery."""
         with self._lock:
-            return all(name in self._latest for name in NODES)
+            return all(name in self._latest and self._connected.get(name, False)
+                       for name in NODES)
 
     def drained_since(self, t0: float) -> bool:
         """Every node reported pending 0 in a status received after ``t0``."""
@@ -169,8 +176,8 @@ def main(argv: list[str] | None = None) -> int:
         while not shutdown.requested.is_set():
             if replay_cmd is not None and (watcher.ready() or time.monotonic() > ready_by):
                 if not watcher.ready():
-                    print(f"bringup: not every node is up after {args.ready_timeout:g} s: "
-                          "replaying anyway", file=sys.stderr)
+                    print(f"bringup: not every node is up and connected after "
+                          f"{args.ready_timeout:g} s: replaying anyway", file=sys.stderr)
                 procs["replay"] = subprocess.Popen(replay_cmd, preexec_fn=_child_setup)
                 replay_cmd = None
             time.sleep(0.2)

@@ -112,6 +112,9 @@ def make_node():
 
         def publish_diagnostics(self) -> None:
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            # Whether the mapper is seen yet: bringup starts a bag only then.
+            self.health.gauge("upstream_publishers",
+                              self.count_publishers(self.topics.rendered_embedding))
             self.pub_diag.publish(diagnostics_msg(self, [(self.health, ("views_received",
                                                                         "labelled"))]))
 

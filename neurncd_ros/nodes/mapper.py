@@ -247,6 +247,8 @@ def make_node():
             if not self.stage.check_training():
                 self.worker.cancel.set()  # no stale output after the field died
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            # Whether the embedding node is seen yet: bringup starts a bag only then.
+            self.health.gauge("upstream_publishers", self.count_publishers(self.topics.embedding))
             self.health.gauge("keyframes_in_map", len(self.stage.mapper.buffer)
                               if self.stage.mapper is not None else 0)
             self.pub_diag.publish(diagnostics_msg(self, [(self.health, (
