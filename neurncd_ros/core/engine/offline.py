@@ -218,11 +218,12 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         result["metrics_backbone_only"] = ev_backbone.result()
     if source is not None:
         result.update(source())
-    (out / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    (out / "metrics.json").write_text(json.dumps(result, indent=2, default=json_default))
     return result
 
 
-def _json_default(obj: Any) -> Any:
+def json_default(obj: Any) -> Any:
+    """``json.dumps(default=...)`` for numpy scalars and arrays in result files."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):

@@ -17,6 +17,7 @@ from ..discovery.labeller import Discoverer
 from ..discovery.mcl import markov_cluster
 from ..discovery.metrics import Evaluator
 from ..engine.mapping import resize_to
+from ..engine.offline import json_default
 from ..frame import Frame
 from ..uncertainty import entropy as softmax_entropy
 
@@ -363,14 +364,6 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(type(obj).__name__)
-
-
 def write_eval(out_dir: str | Path, per_bag: list[dict]) -> dict[str, Any]:
     """DIR/eval.json, DIR/tables.md, DIR/pictures.npz (for ``neurncd report``)."""
     out = Path(out_dir)
@@ -378,7 +371,7 @@ def write_eval(out_dir: str | Path, per_bag: list[dict]) -> dict[str, Any]:
     agg = aggregate(per_bag)
     result = {"bags": [{k: v for k, v in b.items() if k != "pictures"} for b in per_bag],
               "aggregate": agg, "rows": ROWS}
-    (out / "eval.json").write_text(json.dumps(result, indent=1, default=_jsonable))
+    (out / "eval.json").write_text(json.dumps(result, indent=1, default=json_default))
     (out / "tables.md").write_text(markdown_tables(agg, len(per_bag)))
     pics = {}
     for bi, b in enumerate(per_bag):
