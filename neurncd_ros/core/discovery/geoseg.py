@@ -635,6 +635,18 @@ def appearance_edges(embedding: np.ndarray | None, entropy: np.ndarray | None,
     return edges
 
 
+def unit_rgb(colour: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A view's uint8 RGB image checked against the depth's (H, W), as float32 in [0, 1]
+    (what OpenCV's float Lab conversion takes); a clear error otherwise."""
+    colour = np.asarray(colour)
+    if colour.ndim != 3 or colour.shape[:2] != tuple(shape) or colour.shape[2] != 3:
+        raise ValueError(f"colour must be (H, W, 3) with (H, W) = {tuple(shape)}, got "
+                         f"{colour.shape}")
+    if colour.dtype != np.uint8:
+        raise ValueError(f"colour must be uint8 RGB, got dtype {colour.dtype}")
+    return colour.astype(np.float32) * np.float32(1.0 / 255.0)
+
+
 def colour_edges(colour: np.ndarray, shape: tuple[int, int], cfg: GeoSegConfig,
                  sz: dict[str, int]) -> np.ndarray:
     """Colour edges: CIE76 Delta E between the pixels ``embedding_edge_step`` px before
@@ -645,12 +657,7 @@ def colour_edges(colour: np.ndarray, shape: tuple[int, int], cfg: GeoSegConfig,
     geometry nor the embedding separates them; its colour does. Lab makes the
     threshold roughly perceptual, so shading on a plain wall stays below it.
     """
-    colour = np.asarray(colour)
-    if colour.ndim != 3 or colour.shape[:2] != shape or colour.shape[2] != 3:
-        raise ValueError(f"colour must be (H, W, 3) with (H, W) = {shape}, got {colour.shape}")
-    if colour.dtype != np.uint8:
-        raise ValueError(f"colour must be uint8 RGB, got dtype {colour.dtype}")
-    rgb = colour.astype(np.float32) * np.float32(1.0 / 255.0)
+    rgb = unit_rgb(colour, shape)
     if cfg.colour_edge_sigma > 0:
         sigma = cfg.colour_edge_sigma * shape[1] / cfg.reference_width
         rgb = cv2.GaussianBlur(rgb, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)

@@ -122,15 +122,10 @@ def lab_colour(colour: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     wall of one backbone class differs from the wall by a comparable amount
     whatever its hue; shading changes L more than a and b.
     """
-    colour = np.asarray(colour)
-    if colour.ndim != 3 or colour.shape[:2] != tuple(shape) or colour.shape[2] != 3:
-        raise ValueError(f"colour must be (H, W, 3) with (H, W) = {tuple(shape)}, got "
-                         f"{colour.shape}")
-    if colour.dtype != np.uint8:
-        raise ValueError(f"colour must be uint8 RGB, got dtype {colour.dtype}")
     import cv2
-    rgb = colour.astype(np.float32) * np.float32(1.0 / 255.0)
-    return cv2.cvtColor(rgb, cv2.COLOR_RGB2Lab) * np.float32(0.01)
+
+    from .geoseg import unit_rgb
+    return cv2.cvtColor(unit_rgb(colour, shape), cv2.COLOR_RGB2Lab) * np.float32(0.01)
 
 
 def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
