@@ -7,7 +7,8 @@ matching the released checkpoints.)
 A re-implementation of the ESANet model of Seichter et al. (ICRA 2021,
 TUI-NICR/ESANet, Apache-2.0) in its published R34-NBt1D configuration, written
 so that its ``state_dict`` matches the released checkpoints name for name,
-shape for shape and in order (``shared/data/esanet/r34_nbt1d_state_dict.json``):
+shape for shape and in order (the recorded key list, in the repository at
+``test/data/esanet/r34_nbt1d_state_dict.json`` with its README):
 
 - two ResNet34 encoders (blocks 3/4/6/3) built from NonBottleneck1D blocks
   (3x1 / 1x3 convolution pairs with bias, BatchNorm eps 1e-3); the depth
