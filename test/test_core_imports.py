@@ -36,3 +36,87 @@ def test_core_imports_without_rclpy():
                        timeout=300, cwd=PKG.parent)
     assert r.returncode == 0, r.stderr
     assert int(r.stdout.strip()) >= 15, "fewer core modules than expected were imported"
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> package modules it imports (anywhere in its source, lazy imports too)."""
+    import ast
+
+    root = PKG.parent
+    files = {}
+    for path in PKG.rglob("*.py"):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        is_pkg = parts[-1] == "__init__"
+        files[".".join(parts[:-1] if is_pkg else parts)] = (path, is_pkg)
+
+    def owner(name: str) -> str:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
+    graph: dict[str, set[str]] = {}
+    for mod, (path, is_pkg) in files.items():
+        deps = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = mod.split(".")[: len(mod.split(".")) - node.level + is_pkg]
+                    base = ".".join(up + ([base] if base else []))
+                names = [f"{base}.{a.name}" if f"{base}.{a.name}" in files else base
+                         for a in node.names]
+            else:
+                continue
+            deps |= {owner(n) for n in names if n.startswith("neurncd_ros")}
+        graph[mod] = deps - {mod, ""}
+    return graph
+
+
+def test_no_import_circles_and_the_core_imports_only_the_core():
+    """Static: every import statement of the package, those inside functions included."""
+    graph = _import_graph()
+    assert len(graph) > 40 and "neurncd_ros.core.field.mapper" in graph
+    outside = {m: sorted(d for d in deps if not d.startswith("neurncd_ros.core"))
+               for m, deps in graph.items() if m.startswith("neurncd_ros.core")}
+    assert not {m: d for m, d in outside.items() if d}, "the core imports outside itself"
+
+    # Tarjan's strongly connected components: any with two or more modules is a circle.
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while not comp or comp[-1] != v:
+                comp.append(stack.pop())
+            if len(comp) > 1:
+                circles.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not circles, ("import circles (a backend imports register from "
+                         "core.field.backends.registry, not the package): " + repr(circles))
+
+
+def test_every_module_of_the_package_imports():
+    """Nodes, tools, synth and core alike: a stale import anywhere fails here, not in use."""
+    code = ("import importlib, pkgutil, neurncd_ros as p\n"
+            "mods = [m.name for m in pkgutil.walk_packages(p.__path__, 'neurncd_ros.')]\n"
+            "[importlib.import_module(m) for m in mods]\nprint(' '.join(mods))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=300, cwd=PKG.parent)
+    assert r.returncode == 0, r.stderr
+    assert set(r.stdout.split()) == set(_import_graph()) - {"neurncd_ros"}

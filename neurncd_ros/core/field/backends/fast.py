@@ -21,7 +21,7 @@ import torch
 from ...params import param
 from .. import losses, renderer, samplers
 from ..fields import TriPlaneField
-from . import register
+from .registry import register
 from .base import FieldModel, RayBatch, evaluate, render_samples
 
 

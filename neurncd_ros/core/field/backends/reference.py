@@ -15,7 +15,7 @@ import torch
 from ...params import param
 from .. import losses, samplers
 from ..fields import NerfField
-from . import register
+from .registry import register
 from .base import FieldModel, RayBatch, render_samples
 
 
