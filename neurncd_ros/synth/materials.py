@@ -1,7 +1,7 @@
 """Surface materials of the synthetic rooms: patterns and class-typical palettes.
 
 A material names a procedural pattern (evaluated on 3D surface points by
-``synth_render.albedo``) and up to three colours; ``MaterialBook`` draws
+``render.albedo``) and up to three colours; ``MaterialBook`` draws
 per-instance variations of the colours each class typically has, so classes are
 learnable from colour and geometry without any class having a single colour.
 """
@@ -12,7 +12,7 @@ import dataclasses
 
 import numpy as np
 
-# Texture patterns (see synth_render.albedo).
+# Texture patterns (see render.albedo).
 PLAIN, WOOD, STRIPES, CHECKER, PLANKS, FABRIC, PAINTING, SCREEN, OUTSIDE, SPINE = range(10)
 
 
