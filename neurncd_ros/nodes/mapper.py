@@ -90,9 +90,11 @@ def make_node():
                                      latched_qos())
             self.create_subscription(Image, self.topics.labels, self.on_labels, sensor_qos(10))
             depth = 2 * self.node_cfg.max_in_flight + 2
-            self.pub = {name: self.create_publisher(Image, topic, view_qos(depth)) for name, topic in (
-                ("embedding", self.topics.rendered_embedding), ("entropy", self.topics.entropy),
-                ("depth", self.topics.view_depth), ("color", self.topics.view_color))}
+            views = (("embedding", self.topics.rendered_embedding),
+                     ("entropy", self.topics.entropy), ("depth", self.topics.view_depth),
+                     ("color", self.topics.view_color))
+            self.pub = {name: self.create_publisher(Image, topic, view_qos(depth))
+                        for name, topic in views}
             self.pub_info = self.create_publisher(CameraInfo, self.topics.view_camera_info,
                                                   view_qos(depth))
             self.pub_spec = self.create_publisher(String, self.topics.rendered_spec,

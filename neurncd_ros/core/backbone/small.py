@@ -115,7 +115,8 @@ class SEFusion(nn.Module):
 
 def _stage(cin: int, cout: int, dilations: tuple[int, ...]) -> nn.Sequential:
     """Stride-2 downsampling followed by NonBottleneck-1D blocks."""
-    return nn.Sequential(ConvBNReLU(cin, cout, 3, 2), *[NonBottleneck1D(cout, d) for d in dilations])
+    return nn.Sequential(ConvBNReLU(cin, cout, 3, 2),
+                         *[NonBottleneck1D(cout, d) for d in dilations])
 
 
 class PyramidPooling(nn.Module):

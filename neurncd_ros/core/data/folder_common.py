@@ -16,7 +16,6 @@ import numpy as np
 from ..camera import Intrinsics, check_pose, pose_from_tq
 from ..frame import Frame
 from ..params import param
-from ..sync import nearest
 
 
 KINDS = ("auto", "replica", "tum", "nyu", "nyu_labelled", "posetxt", "redwood")
