@@ -507,7 +507,8 @@ def load_esanet_checkpoint(path: str | os.PathLike, num_classes: int | None = No
                                   "(4-D conv weight); is it an ESANet R34-NBt1D state dict? "
                                   f"first keys: {list(sd)[:5]}")
         num_classes = int(head.shape[0])
-    model = ESANet(num_classes)
+    with torch.random.fork_rng(devices=[]):  # initial weights replaced below: global RNG kept
+        model = ESANet(num_classes)
     report = _mismatch_report(model.state_dict(), sd)
     if report:
         raise CheckpointError(f"checkpoint {path} does not fit ESANet R34-NBt1D with "
