@@ -120,3 +120,17 @@ def test_every_module_of_the_package_imports():
                        timeout=300, cwd=PKG.parent)
     assert r.returncode == 0, r.stderr
     assert set(r.stdout.split()) == set(_import_graph()) - {"neurncd_ros"}
+
+
+def test_modules_over_500_lines_say_at_their_top_why_they_stay_one():
+    import ast
+
+    long = []
+    for path in sorted(PKG.rglob("*.py")):
+        text = path.read_text()
+        if text.count("\n") <= 500:
+            continue
+        doc = " ".join((ast.get_docstring(ast.parse(text)) or "").split()).lower()
+        if "one module" not in doc:
+            long.append(str(path.relative_to(PKG)))
+    assert not long, f"over 500 lines without a reason in the module docstring: {long}"

@@ -1,6 +1,6 @@
 """CPU ray caster for the synthetic rooms: depth, labels, procedural texture, sensor noise.
 
-(One module of about 540 lines: intersection, z-buffer, textures and the
+(One module, over 500 lines: intersection, z-buffer, textures and the
 sensor-noise model share the per-frame ray arrays and are tuned together.)
 
 All rays of a frame share the camera centre, so each part is intersected only

@@ -1,6 +1,6 @@
 """ESANet R34-NBt1D: the public RGB-D segmentation network, and safe checkpoint loading.
 
-(One module of about 510 lines: the network's layers, its checkpoint-name
+(One module, over 500 lines: the network's layers, its checkpoint-name
 mapping and the safe loader must change together to keep the state_dict
 matching the released checkpoints.)
 

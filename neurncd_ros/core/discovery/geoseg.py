@@ -1,6 +1,6 @@
 """Geometric segmentation of a depth image into convex sub-instance segments.
 
-(One module of about 690 lines: the steps below share their vectorised
+(One module, over 500 lines: the steps below share their vectorised
 neighbour-pair helpers and one config, and are read in pipeline order.)
 
 After Furrer et al. 2018 ("Incremental object database: building 3D models
