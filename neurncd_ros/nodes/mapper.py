@@ -51,8 +51,6 @@ def make_node():
             if self.cfg.mapper.num_threads > 0:  # this process is the mapper's
                 torch.set_num_threads(self.cfg.mapper.num_threads)
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
-            if self.cfg.mapper.num_threads > 0:
-                torch.set_num_threads(self.cfg.mapper.num_threads)
             self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
             self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
             try:
