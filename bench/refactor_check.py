@@ -1,20 +1,29 @@
-"""Behaviour check of a refactor: the quality figures of two bench runs, compared key by key.
+"""Behaviour check of a refactor: the quality figures of cheap benches before and after it.
 
-Run the cheap deterministic benches at the commit before the refactor and at the
-commit after it (each in its own worktree, each with its own rendering cache),
-then compare the JSON they wrote:
+    .venv/bin/python bench/refactor_check.py                 # the recorded check (below)
+    .venv/bin/python bench/refactor_check.py --before C1 --after C2 [--after-set K=V ...]
+    .venv/bin/python bench/refactor_check.py --before-results DIR --after-results DIR
 
-    git worktree add --detach /tmp/before <commit>      # and one for the after commit
-    (cd /tmp/before && NEURNCD_NCD_CACHE=/tmp/cache_before nice -n 10 python \\
-        bench/discovery.py --quick && nice -n 10 python bench/ncd.py --quick --workers 1)
-    .venv/bin/python bench/refactor_check.py --before DIR --after DIR [--note KEY=WHY ...]
+Each side is a detached git worktree of its commit (in a temporary folder,
+removed afterwards) in which the deterministic quick benches run with this
+interpreter and their own rendering cache: ``bench/discovery.py --quick``
+(segment purity, MCL, the descriptor-level MCL grid) and ``bench/ncd.py --quick
+--workers 1`` (2 held-out scenes end to end, every ablation row). ``--*-set``
+passes parameter overrides to a side's ncd run, so a default changed on purpose
+between the commits (not by the refactor) can be set back. ``--*-results``
+compares folders holding a side's ``discovery.json`` and ``ncd.json`` instead.
 
-``DIR`` holds the ``discovery.json`` and ``ncd.json`` of one side. Every figure
-present on both sides is compared, except timings (a shared CPU makes them
-noise) and bookkeeping (commit, cores); each differing figure is listed with
-both values. A difference a deliberate change of a default explains (not the
-refactor) is named with ``--note`` and counted apart. Writes
-bench/results/refactor_check.json and prints a table of the headline figures.
+Every figure present on both sides is compared except timings (a shared CPU
+makes them noise) and bookkeeping (commit, cores). Differences a deliberate
+default change explains are named with ``--note KEY=WHY`` and counted apart.
+Writes bench/results/refactor_check.json and prints the headline figures;
+exits 1 if any other figure differs.
+
+The recorded check: the second half of issue 13 (one entropy/softmax/IoU,
+formats split, synth split, docstrings, ``pair_slices``, ...) started after
+``d19c2c8``; in between, two deliberate changes moved defaults
+(``170e721``: ``modulation.colour_weight`` 2 and ``discovery.mode_split`` on;
+``5d6eeeb``: ``mcl.inflation`` 1.6 -> 1.4), which the after side sets back.
 """
 
 from __future__ import annotations
@@ -22,13 +31,24 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
+
+from tqdm import tqdm
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 BENCHES = ("discovery", "ncd")
+BEFORE = "d19c2c8"
+AFTER_SET = ("modulation.colour_weight=0", "discovery.mode_split=false", "mcl.inflation=1.6")
+NOTES = {k: "the chosen row of the same grid: MCLConfig's default inflation is 1.4 after "
+         "5d6eeeb (1.6 before); every row of the grid is compared on its own"
+         for k in ("tune_default_ari", "tune_default_clusters", "tune_default_purity")}
 NOT_QUALITY = re.compile(r"(_ms_per_frame|_ms_320x240|_s|_seconds|_peak_rss_gb)$|^(commit|cores"
                          r"|notes|quick)$")
 HEADLINE = {
@@ -61,39 +81,95 @@ def compare(before: dict, after: dict, notes: dict[str, str]) -> dict:
             "only_after": sorted(set(after) - set(before))}
 
 
+def git(*args: str) -> str:
+    return subprocess.run(["git", *args], cwd=REPO, check=True, capture_output=True,
+                          text=True).stdout.strip()
+
+
+def run_side(commit: str, sets: list[str], work: Path, bar: tqdm) -> tuple[Path, list[str]]:
+    """Run the quick benches in a worktree of ``commit``; (folder of their JSON, commands)."""
+    tree, out = work / "tree", work / "results"
+    out.mkdir(parents=True)
+    git("worktree", "add", "--detach", str(tree), commit)
+    env = dict(os.environ, NEURNCD_NCD_CACHE=str(work / "cache"), OMP_NUM_THREADS="1")
+    runs = {"discovery": ["bench/discovery.py", "--quick"],
+            "ncd": ["bench/ncd.py", "--quick", "--workers", "1",
+                    *[a for kv in sets for a in ("--set", kv)]]}
+    commands = []
+    try:
+        for bench, argv in runs.items():
+            bar.set_postfix_str(f"{commit} {bench}")
+            log = work / f"{bench}.log"
+            with log.open("w") as f:
+                rc = subprocess.call([sys.executable, *argv], cwd=tree, env=env, stdout=f,
+                                     stderr=subprocess.STDOUT)
+            if rc != 0:
+                raise RuntimeError(f"bench/{bench}.py at {commit} failed (exit {rc}); "
+                                   f"end of its log:\n{log.read_text()[-2000:]}")
+            shutil.copy(tree / "bench" / "results" / f"{bench}.json", out / f"{bench}.json")
+            commands.append(f"{' '.join(argv)} (worktree at {commit})")
+            bar.update()
+    finally:
+        git("worktree", "remove", "--force", str(tree))
+    return out, commands
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--before", type=Path, required=True, help="folder of the before run")
-    ap.add_argument("--after", type=Path, required=True, help="folder of the after run")
+    ap.add_argument("--before", default=BEFORE, help=f"commit before (default {BEFORE})")
+    ap.add_argument("--after", default="HEAD", help="commit after (default HEAD)")
+    ap.add_argument("--before-set", action="append", default=None, metavar="KEY=VALUE")
+    ap.add_argument("--after-set", action="append", default=None, metavar="KEY=VALUE",
+                    help="default: " + " ".join(AFTER_SET) + " with the default commits")
+    ap.add_argument("--before-results", type=Path, help="compare this folder instead")
+    ap.add_argument("--after-results", type=Path, help="compare this folder instead")
     ap.add_argument("--note", action="append", default=[], metavar="KEY=WHY",
                     help="a differing figure a deliberate change explains")
-    ap.add_argument("--command", action="append", default=[], metavar="SIDE=COMMAND",
-                    help="the command each side ran (recorded in the JSON)")
     ap.add_argument("--out", type=Path, default=RESULTS / "refactor_check.json")
     args = ap.parse_args()
-    notes = dict(n.split("=", 1) for n in args.note)
-    res: dict = {"commands": dict(c.split("=", 1) for c in args.command), "benches": {}}
-    for bench in BENCHES:
-        sides = {}
+    recorded = args.before == BEFORE and args.after == "HEAD"
+    notes = {**(NOTES if recorded else {}), **dict(n.split("=", 1) for n in args.note)}
+    sets = {"before": args.before_set or [],
+            "after": args.after_set if args.after_set is not None else
+            (list(AFTER_SET) if recorded else [])}
+    res: dict = {"sides": {}, "benches": {}}
+    folders = {"before": args.before_results, "after": args.after_results}
+    todo = [s for s in folders if folders[s] is None]
+    with tempfile.TemporaryDirectory(prefix="refactor_check_") as tmp, \
+            tqdm(total=len(BENCHES) * len(todo), desc="quick benches", unit="bench") as bar:
         for side in ("before", "after"):
-            path = getattr(args, side) / f"{bench}.json"
-            if not path.is_file():
-                print(f"error: {path} does not exist (run bench/{bench}.py on that side)",
-                      file=sys.stderr)
-                return 2
-            sides[side] = json.loads(path.read_text())
-        out = compare(sides["before"], sides["after"], notes)
-        out.update({f"{s}_commit": sides[s].get("commit") for s in sides})
-        out["headline"] = {k: {s: sides[s].get(k) for s in sides} for k in HEADLINE[bench]
-                           if k in sides["before"] or k in sides["after"]}
-        res["benches"][bench] = out
+            commit = git("rev-parse", "--short", getattr(args, side))
+            info = {"commit": commit, "set": sets[side]}
+            if folders[side] is None:
+                folders[side], info["commands"] = run_side(commit, sets[side],
+                                                           Path(tmp) / side, bar)
+            else:
+                info["results_from"] = str(folders[side])
+            res["sides"][side] = info
+        for bench in BENCHES:
+            sides = {}
+            for side in ("before", "after"):
+                path = folders[side] / f"{bench}.json"
+                if not path.is_file():
+                    print(f"error: {path} does not exist (run bench/{bench}.py on that side)",
+                          file=sys.stderr)
+                    return 2
+                sides[side] = json.loads(path.read_text())
+            out = compare(sides["before"], sides["after"], notes)
+            out.update({f"{s}_commit": sides[s].get("commit") for s in sides})
+            out["headline"] = {k: {s: sides[s].get(k) for s in sides} for k in HEADLINE[bench]
+                               if k in sides["before"] or k in sides["after"]}
+            res["benches"][bench] = out
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1, sort_keys=True))
 
+    for side, info in res["sides"].items():
+        print(f"{side}: {info['commit']}" + (f", ncd --set {' '.join(info['set'])}"
+                                             if info["set"] else ""))
     for bench, out in res["benches"].items():
-        print(f"\n{bench}: {out['before_commit']} -> {out['after_commit']}: {out['equal']} of "
-              f"{out['compared']} quality figures equal, {len(out['differ_explained'])} "
-              f"differ as noted, {len(out['differ_unexplained'])} differ otherwise")
+        print(f"\n{bench}: {out['equal']} of {out['compared']} quality figures equal, "
+              f"{len(out['differ_explained'])} differ as noted, "
+              f"{len(out['differ_unexplained'])} differ otherwise")
         print(f"{'figure':34s} {'before':>10s} {'after':>10s}")
         for k, v in out["headline"].items():
             print(f"{k:34s} " + " ".join(f"{x:10.4g}" if isinstance(x, (int, float)) else
