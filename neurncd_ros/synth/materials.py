@@ -99,6 +99,7 @@ class MaterialBook:
         return self.add(Material(PLAIN, base, _shade(base, 0.9), base, 8.0))
 
     def vivid(self) -> int:
+        """A saturated random colour for small objects (any hue: objects have no palette)."""
         base = _hsv(self.rng.random(), self.rng.uniform(0.4, 0.9), self.rng.uniform(0.35, 0.95))
         other = _hsv(self.rng.random(), self.rng.uniform(0.2, 0.8), self.rng.uniform(0.5, 1.0))
         pat = self.pick([PLAIN, PLAIN, STRIPES, CHECKER])
@@ -136,6 +137,7 @@ class MaterialBook:
         return self.add(Material(PLAIN, base, _shade(base, 0.94), base, 1.5))
 
     def floor(self) -> int:
+        """Floor material: wooden planks (half the rooms), checker tiles or carpet."""
         r = self.rng.random()
         if r < 0.5:
             base = jitter(self.rng, self.pick(WOODS), 0.04)

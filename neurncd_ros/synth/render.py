@@ -92,6 +92,7 @@ class SceneArrays:
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "SceneArrays":
+        """The flat arrays of ``scene`` (its parts, then the room's six faces)."""
         P = len(scene.parts)
         kind = np.array([p.kind for p in scene.parts], dtype=np.int8).reshape(P)
         centre = np.array([p.centre for p in scene.parts], dtype=np.float64).reshape(P, 3)
