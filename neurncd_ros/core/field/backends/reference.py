@@ -33,6 +33,9 @@ class ReferenceConfig:
 
 @register("reference", ReferenceConfig)
 class ReferenceModel(FieldModel):
+    """Semantic-NeRF's two MLPs: a coarse one on stratified samples, a fine one on those
+    plus importance samples, photometric and embedding losses on both (the paper's
+    setting); renders the fine pass and never uses depth."""
     def __init__(self, cfg: ReferenceConfig, channels: int, shared,
                  generator: torch.Generator) -> None:
         super().__init__()
