@@ -134,3 +134,62 @@ def test_modules_over_500_lines_say_at_their_top_why_they_stay_one():
         if "one module" not in doc:
             long.append(str(path.relative_to(PKG)))
     assert not long, f"over 500 lines without a reason in the module docstring: {long}"
+
+
+GLOBAL_SETTERS = {"torch.set_num_threads", "torch.set_num_interop_threads", "torch.manual_seed",
+                  "torch.seed", "np.random.seed", "numpy.random.seed", "cv2.setNumThreads",
+                  "random.seed"}
+TORCH_DRAWS = {"rand", "randn", "randint", "randperm", "rand_like", "randn_like",
+               "randint_like", "normal", "bernoulli", "multinomial", "poisson"}
+TENSOR_DRAWS = {"uniform_", "normal_", "random_", "bernoulli_", "exponential_", "cauchy_",
+                "geometric_", "log_normal_"}
+
+
+def _dotted(node) -> str:
+    import ast
+
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if isinstance(node, ast.Name):
+        parts.append(node.id)
+    return ".".join(reversed(parts))
+
+
+def test_core_and_synth_set_no_process_state_and_draw_from_explicit_generators():
+    """Thread counts and seeds belong to the executable; every draw names its generator.
+
+    Allowed: a seed set inside ``with torch.random.fork_rng(...)`` (restored on exit).
+    """
+    import ast
+
+    found = []
+    for path in sorted([*(PKG / "core").rglob("*.py"), *(PKG / "synth").rglob("*.py")]):
+        tree = ast.parse(path.read_text(), str(path))
+        forked = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.With) and any(
+                    isinstance(i.context_expr, ast.Call)
+                    and _dotted(i.context_expr.func).endswith("random.fork_rng")
+                    for i in node.items):
+                forked |= {id(n) for n in ast.walk(node)}
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Call):
+                continue
+            name = _dotted(node.func)
+            where = f"{path.relative_to(PKG)}:{node.lineno} {name}"
+            kw = {k.arg for k in node.keywords}
+            if name in GLOBAL_SETTERS and id(node) not in forked:
+                found.append(where)
+            elif name.startswith("torch.") and name.split(".")[-1] in TORCH_DRAWS \
+                    and "generator" not in kw:
+                found.append(where)
+            elif name.startswith(("np.random.", "numpy.random.")) and name.split(".")[-1] \
+                    not in ("default_rng", "Generator", "PCG64", "SeedSequence"):
+                found.append(where)
+            elif name.startswith("random.") and name != "random.Random":
+                found.append(where)
+            elif name.split(".")[-1] in TENSOR_DRAWS and "generator" not in kw:
+                found.append(where)
+    assert not found, f"process-wide state or global random draws: {found}"
