@@ -86,7 +86,8 @@ def git(*args: str) -> str:
                           text=True).stdout.strip()
 
 
-def run_side(commit: str, sets: list[str], work: Path, bar: tqdm) -> tuple[Path, list[str]]:
+def run_side(commit: str, sets: list[str], work: Path, benches: list[str], bar: tqdm
+             ) -> tuple[Path, list[str]]:
     """Run the quick benches in a worktree of ``commit``; (folder of their JSON, commands)."""
     tree, out = work / "tree", work / "results"
     out.mkdir(parents=True)
@@ -97,7 +98,8 @@ def run_side(commit: str, sets: list[str], work: Path, bar: tqdm) -> tuple[Path,
                     *[a for kv in sets for a in ("--set", kv)]]}
     commands = []
     try:
-        for bench, argv in runs.items():
+        for bench in benches:
+            argv = runs[bench]
             bar.set_postfix_str(f"{commit} {bench}")
             log = work / f"{bench}.log"
             with log.open("w") as f:
@@ -125,6 +127,8 @@ def main() -> int:
     ap.add_argument("--after-results", type=Path, help="compare this folder instead")
     ap.add_argument("--note", action="append", default=[], metavar="KEY=WHY",
                     help="a differing figure a deliberate change explains")
+    ap.add_argument("--benches", nargs="+", choices=BENCHES, default=list(BENCHES),
+                    help="compare only these (default: both)")
     ap.add_argument("--out", type=Path, default=RESULTS / "refactor_check.json")
     args = ap.parse_args()
     recorded = args.before == BEFORE and args.after == "HEAD"
@@ -136,17 +140,17 @@ def main() -> int:
     folders = {"before": args.before_results, "after": args.after_results}
     todo = [s for s in folders if folders[s] is None]
     with tempfile.TemporaryDirectory(prefix="refactor_check_") as tmp, \
-            tqdm(total=len(BENCHES) * len(todo), desc="quick benches", unit="bench") as bar:
+            tqdm(total=len(args.benches) * len(todo), desc="quick benches", unit="bench") as bar:
         for side in ("before", "after"):
             commit = git("rev-parse", "--short", getattr(args, side))
             info = {"commit": commit, "set": sets[side]}
             if folders[side] is None:
-                folders[side], info["commands"] = run_side(commit, sets[side],
-                                                           Path(tmp) / side, bar)
+                folders[side], info["commands"] = run_side(commit, sets[side], Path(tmp) / side,
+                                                           args.benches, bar)
             else:
                 info["results_from"] = str(folders[side])
             res["sides"][side] = info
-        for bench in BENCHES:
+        for bench in args.benches:
             sides = {}
             for side in ("before", "after"):
                 path = folders[side] / f"{bench}.json"
