@@ -131,6 +131,14 @@ def main() -> int:
                     help="compare only these (default: both)")
     ap.add_argument("--out", type=Path, default=RESULTS / "refactor_check.json")
     args = ap.parse_args()
+    bad = [n for n in args.note if "=" not in n]
+    if bad:
+        ap.error(f"--note wants KEY=WHY, got {bad[0]!r}")
+    for side in ("before", "after"):
+        try:
+            git("rev-parse", "--verify", "--quiet", getattr(args, side) + "^{commit}")
+        except subprocess.CalledProcessError:
+            ap.error(f"--{side} {getattr(args, side)!r} is not a commit of {REPO}")
     recorded = args.before == BEFORE and args.after == "HEAD"
     notes = {**(NOTES if recorded else {}), **dict(n.split("=", 1) for n in args.note)}
     sets = {"before": args.before_set or [],
@@ -139,6 +147,12 @@ def main() -> int:
     res: dict = {"sides": {}, "benches": {}}
     folders = {"before": args.before_results, "after": args.after_results}
     todo = [s for s in folders if folders[s] is None]
+    for side, folder in folders.items():
+        for bench in args.benches if folder is not None else ():
+            if not (folder / f"{bench}.json").is_file():
+                print(f"error: {folder / f'{bench}.json'} does not exist (run bench/{bench}.py "
+                      f"on the {side} side)", file=sys.stderr)
+                return 2
     with tempfile.TemporaryDirectory(prefix="refactor_check_") as tmp, \
             tqdm(total=len(args.benches) * len(todo), desc="quick benches", unit="bench") as bar:
         for side in ("before", "after"):
@@ -153,12 +167,7 @@ def main() -> int:
         for bench in args.benches:
             sides = {}
             for side in ("before", "after"):
-                path = folders[side] / f"{bench}.json"
-                if not path.is_file():
-                    print(f"error: {path} does not exist (run bench/{bench}.py on that side)",
-                          file=sys.stderr)
-                    return 2
-                sides[side] = json.loads(path.read_text())
+                sides[side] = json.loads((folders[side] / f"{bench}.json").read_text())
             out = compare(sides["before"], sides["after"], notes)
             out.update({f"{s}_commit": sides[s].get("commit") for s in sides})
             out["headline"] = {k: {s: sides[s].get(k) for s in sides} for k in HEADLINE[bench]
