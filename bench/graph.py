@@ -58,7 +58,9 @@ RECORDER = textwrap.dedent("""
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image
     from neurncd_ros.core import msgconv
+    from neurncd_ros.core.topics import Topics
     from neurncd_ros.nodes.common import Shutdown, output_qos, sensor_qos
+    topics = Topics()
     out = sys.argv[1]
     shutdown = Shutdown().install()
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -72,10 +74,10 @@ RECORDER = textwrap.dedent("""
         s = stamp(m)
         if s not in labels:
             labels[s] = time.monotonic()
-            images[s] = msgconv.image_to_array(m, "/neurncd/labels")
-    node.create_subscription(Image, "/camera/depth/image_raw", on_depth, sensor_qos(100))
-    node.create_subscription(Image, "/neurncd/labels", on_label, output_qos(100))
-    node.create_subscription(PoseStamped, "/neurncd/keyframes",
+            images[s] = msgconv.image_to_array(m, topics.labels)
+    node.create_subscription(Image, topics.depth, on_depth, sensor_qos(100))
+    node.create_subscription(Image, topics.labels, on_label, output_qos(100))
+    node.create_subscription(PoseStamped, topics.keyframes,
                              lambda m: keyframes.append(stamp(m)), output_qos(100))
     open(out + ".ready", "w").close()
     while not shutdown.requested.is_set():

@@ -60,7 +60,7 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from neurncd_ros import config
+from neurncd_ros import config  # noqa: E402
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.engine.mapping import resize_to  # noqa: E402
 from neurncd_ros.core.engine.offline import OfflineEngine  # noqa: E402
@@ -68,7 +68,7 @@ from neurncd_ros.synth.training import generator_hash  # noqa: E402
 from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.core.camera import Intrinsics  # noqa: E402
-from neurncd_ros import synth
+from neurncd_ros import synth  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
 from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402

@@ -32,6 +32,7 @@ def _overrides(pairs: list[str] | None) -> dict:
 
 
 def load_config(args: argparse.Namespace) -> config_mod.Config:
+    """The configuration a subcommand runs with: ``--config`` file, then ``--set`` overrides."""
     return config_mod.load(getattr(args, "config", None), _overrides(getattr(args, "set", None)))
 
 
@@ -234,6 +235,7 @@ def _progress(it, total: int, desc: str):
 # ------------------------------------------------------------------ parser
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``neurncd`` argument parser with one subparser per subcommand."""
     parser = argparse.ArgumentParser(
         prog="neurncd", description="NeurNCD offline tool: synthetic scenes, dataset "
         "conversion, backbone training, the full pipeline on a bag, and benchmarks.")
@@ -330,6 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``neurncd``: run one subcommand, return its exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

@@ -103,6 +103,7 @@ def section_classes() -> dict[str, type]:
 
 
 def section_class(name: str) -> type:
+    """The config class of section ``name``; a ConfigError naming it if there is none."""
     try:
         return section_classes()[name]
     except KeyError:

@@ -59,6 +59,15 @@ def test_default_backbone_shape_and_dtype(default_backbone):
         assert np.isfinite(out).all()
 
 
+def test_loading_the_default_backbone_leaves_torchs_global_generator_alone():
+    """The layers' throw-away initial weights are drawn from a forked generator, so
+    building a backbone does not change what anyone else draws from torch's."""
+    state = torch.random.get_rng_state()
+    b = bb.load_backbone(bb.BackboneConfig(num_threads=0))
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert b.channels == len(classes.KNOWN_IDS)
+
+
 def test_predict_batch_matches_single(default_backbone):
     a = _rgbd(240, 320, 1)
     b = _rgbd(150, 200, 2)
@@ -297,9 +306,11 @@ def test_esanet_checkpoint_loads_through_backbone(tmp_path):
     path = tmp_path / "ckpt_sunrgbd.pth"
     torch.save({"state_dict": net.state_dict(), "epoch": 0}, path)
     del net
+    state = torch.random.get_rng_state()
     b = bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint=str(path),
                                            esanet_dataset="sunrgbd", input_width=320,
                                            input_height=256, num_threads=0))
+    assert torch.equal(torch.random.get_rng_state(), state), "loading drew from torch's RNG"
     assert b.channels == 37
     rgb, depth = _rgbd(240, 320)
     out = b.predict(rgb, depth)

@@ -167,7 +167,8 @@ def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, 
 ])
 def test_bad_parameter_stops_node_with_clear_message(args, expect):
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args", *args],
-                       env=ros_env(rosutil.domain(6)), capture_output=True, text=True, timeout=120, cwd=REPO)
+                       env=ros_env(rosutil.domain(6)), capture_output=True, text=True,
+                       timeout=120, cwd=REPO)
     assert r.returncode == 2, r.stdout + r.stderr
     assert expect in r.stderr
     assert "Traceback" not in r.stderr

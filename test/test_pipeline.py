@@ -13,6 +13,12 @@ from neurncd_ros.core.params import build
 from rosutil import REPO
 
 
+def neurncd(*args: object, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run the offline tool (``python -m neurncd_ros.cli ARGS``) from the repository root."""
+    return subprocess.run([sys.executable, "-m", "neurncd_ros.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
 @pytest.fixture(scope="module")
 def small_bag(tmp_path_factory):
     from neurncd_ros import synth
@@ -26,9 +32,7 @@ def small_bag(tmp_path_factory):
 
 def test_run_cli_on_bag_writes_metrics_and_overlays(small_bag, tmp_path):
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "run", "--bag", str(small_bag),
-                        "--out", str(out), "--set", "run.overlays=2"],
-                       capture_output=True, text=True, timeout=600, cwd=REPO)
+    r = neurncd("run", "--bag", small_bag, "--out", out, "--set", "run.overlays=2")
     assert r.returncode == 0, r.stdout + r.stderr
     result = json.loads((out / "metrics.json").read_text())
     assert f"ran 24 frames ({result['labelled']} labelled, " in r.stdout
@@ -47,12 +51,9 @@ def test_run_cli_on_bag_writes_metrics_and_overlays(small_bag, tmp_path):
 def test_run_rejects_bad_input_clearly(tmp_path):
     bogus = tmp_path / "bogus.mcap"
     bogus.write_bytes(b"not a bag at all")
-    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "run", "--bag", str(bogus)],
-                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    r = neurncd("run", "--bag", bogus, timeout=120)
     assert r.returncode == 1 and "bogus.mcap" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "run", "--bag", "x.mcap",
-                        "--set", "mapper.backend=gpu"], capture_output=True, text=True,
-                       timeout=120, cwd=REPO)
+    r = neurncd("run", "--bag", "x.mcap", "--set", "mapper.backend=gpu", timeout=120)
     assert r.returncode == 2 and "mapper.backend" in r.stderr
 
 
@@ -62,10 +63,8 @@ def test_synth_cli_writes_readable_scene(tmp_path, fmt):
     from neurncd_ros.core.data.formats import read_folder
 
     out = tmp_path / ("scene.mcap" if fmt == "mcap" else "replica")
-    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "synth", "--seed", "4",
-                        "--frames", "3", "--width", "96", "--height", "72", "--format", fmt,
-                        "--out", str(out)], capture_output=True, text=True, timeout=300,
-                       cwd=REPO)
+    r = neurncd("synth", "--seed", 4, "--frames", 3, "--width", 96, "--height", 72,
+                "--format", fmt, "--out", out, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "wrote 3 frames of seed 4 (96x72" in r.stdout
     frames = list(FrameReader(out) if fmt == "mcap" else read_folder(out))
@@ -82,9 +81,7 @@ def test_run_estimates_the_poses_of_a_bag_without_them(tmp_path):
     write_bag(bag, synth.generate(1002, 24, synth.SynthConfig(width=160, height=120)),
               pose_mode="none")
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "neurncd_ros.cli", "run", "--bag", str(bag),
-                        "--out", str(out), "--set", "run.overlays=0"],
-                       capture_output=True, text=True, timeout=600, cwd=REPO)
+    r = neurncd("run", "--bag", bag, "--out", out, "--set", "run.overlays=0")
     assert r.returncode == 0, r.stdout + r.stderr
     result = json.loads((out / "metrics.json").read_text())
     assert result["poses"] == "odometry" and result["labelled"] >= 2

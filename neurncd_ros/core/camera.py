@@ -155,6 +155,7 @@ def check_pose(pose: np.ndarray, what: str = "pose") -> np.ndarray:
 
 
 def invert_pose(pose: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform from its parts: (R^T, -R^T t), no general inverse."""
     R, t = pose[:3, :3], pose[:3, 3]
     out = np.eye(4)
     out[:3, :3] = R.T

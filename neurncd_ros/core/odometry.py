@@ -1,6 +1,6 @@
 """Camera poses from the RGB-D images themselves, for inputs that carry none.
 
-(One module of about 570 lines: dense tracking, the feature fallback, the
+(One module, over 500 lines: dense tracking, the feature fallback, the
 checks and relocalisation share one keyframe store and one loss policy.)
 
 NYUv2 raw sequences have no poses, and many robot bags have no pose topic or

@@ -158,6 +158,7 @@ class StampSync:
                 q[:] = keep
 
     def add(self, stream: str, stamp_ns: int, value: Any) -> list[tuple[int, dict[str, Any]]]:
+        """Store one stream's message; the groups it completed, oldest first (class doc)."""
         if stream not in self._pending:
             raise KeyError(f"unknown stream {stream!r}; streams: {self.streams}")
         stamp_ns = int(stamp_ns)

@@ -213,6 +213,7 @@ def sensor_qos(depth: int = 5):
 
 
 def output_qos(depth: int = 10):
+    """Reliable, keep last: what the nodes publish reaches every subscriber that keeps up."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
     return QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST)
@@ -247,10 +248,12 @@ def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
 
 
 def image_msg(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str, topic: str = ""):
+    """A sensor_msgs/Image of ``arr`` (``topic`` names it in a conversion error)."""
     return make_image(msgconv.image_fields(arr, encoding, topic), stamp_ns, frame_id)
 
 
 def camera_info_msg(intr, stamp_ns: int, frame_id: str):
+    """A sensor_msgs/CameraInfo of pinhole intrinsics ``intr``."""
     from sensor_msgs.msg import CameraInfo
     f = msgconv.camera_info_fields(intr)
     msg = CameraInfo()
@@ -262,6 +265,7 @@ def camera_info_msg(intr, stamp_ns: int, frame_id: str):
 
 
 def pose_msg(T: np.ndarray, stamp_ns: int, frame_id: str):
+    """A geometry_msgs/PoseStamped of the 4x4 camera-to-world ``T``."""
     from geometry_msgs.msg import PoseStamped
     f = msgconv.matrix_to_pose_fields(T)
     msg = PoseStamped()
@@ -274,6 +278,7 @@ def pose_msg(T: np.ndarray, stamp_ns: int, frame_id: str):
 
 
 def header_ns(msg: Any) -> int:
+    """A message's header stamp in nanoseconds."""
     return msgconv.stamp_to_ns(msg.header.stamp)
 
 

@@ -51,8 +51,6 @@ def make_node():
             if self.cfg.mapper.num_threads > 0:  # this process is the mapper's
                 torch.set_num_threads(self.cfg.mapper.num_threads)
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
-            if self.cfg.mapper.num_threads > 0:
-                torch.set_num_threads(self.cfg.mapper.num_threads)
             self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
             self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
             try:
@@ -90,9 +88,11 @@ def make_node():
                                      latched_qos())
             self.create_subscription(Image, self.topics.labels, self.on_labels, sensor_qos(10))
             depth = 2 * self.node_cfg.max_in_flight + 2
-            self.pub = {name: self.create_publisher(Image, topic, view_qos(depth)) for name, topic in (
-                ("embedding", self.topics.rendered_embedding), ("entropy", self.topics.entropy),
-                ("depth", self.topics.view_depth), ("color", self.topics.view_color))}
+            views = (("embedding", self.topics.rendered_embedding),
+                     ("entropy", self.topics.entropy), ("depth", self.topics.view_depth),
+                     ("color", self.topics.view_color))
+            self.pub = {name: self.create_publisher(Image, topic, view_qos(depth))
+                        for name, topic in views}
             self.pub_info = self.create_publisher(CameraInfo, self.topics.view_camera_info,
                                                   view_qos(depth))
             self.pub_spec = self.create_publisher(String, self.topics.rendered_spec,

@@ -21,6 +21,8 @@ from .parts import RoomBuilder, Surface, _overlap, _rot, part_aabb
 
 
 def build_bed(b: RoomBuilder) -> bool:
+    """Bed against a wall (double in most rooms over 3.2 m across, else single): frame,
+    headboard, mattress, blanket, pillows; False if no wall had room."""
     wide = b.rng.random() < 0.6 and min(b.W, b.D) > 3.2
     w = b.u(1.4, 1.8) if wide else b.u(0.9, 1.1)
     d = b.u(1.95, 2.15)
@@ -108,6 +110,7 @@ def build_sofa(b: RoomBuilder, small: bool = False) -> bool:
 
 
 def build_chair(b: RoomBuilder, frame) -> None:
+    """Chair at ``frame``: seat, four legs (round or square) and a back."""
     inst = b.instance("chair")
     s = b.u(0.4, 0.48)
     sh = b.u(0.42, 0.48)
@@ -133,6 +136,8 @@ def build_chair(b: RoomBuilder, frame) -> None:
 
 
 def build_table(b: RoomBuilder, frame, w: float, d: float, h: float, round_top: bool = False):
+    """Table w x d, top at height h (round: one pedestal), with a support surface on top;
+    returns its instance id."""
     inst = b.instance("table")
     top = b.mats.furniture_surface()
     legs = b.mats.metal() if b.rng.random() < 0.35 else top
@@ -157,6 +162,8 @@ def build_table(b: RoomBuilder, frame, w: float, d: float, h: float, round_top: 
 
 def build_cabinet(b: RoomBuilder, frame, w: float, d: float, h: float, drawers: int = 0,
                   doors: int = 0) -> int:
+    """Cabinet w x d x h with drawer or door fronts and handles, its top a support
+    surface; returns its instance id."""
     inst = b.instance("furniture")
     body = b.mats.furniture_surface()
     front = b.mats.lacquer() if b.rng.random() < 0.3 else body
@@ -184,6 +191,8 @@ def build_cabinet(b: RoomBuilder, frame, w: float, d: float, h: float, drawers: 
 
 
 def build_shelf(b: RoomBuilder, frame, w: float, d: float, h: float) -> int:
+    """Open bookshelf: sides, back and 3-6 boards; the space above each board and the top
+    are support surfaces (books go there); returns its instance id."""
     inst = b.instance("furniture")
     b.shelves += 1
     mat = b.mats.furniture_surface()
@@ -206,6 +215,8 @@ def build_shelf(b: RoomBuilder, frame, w: float, d: float, h: float) -> int:
 
 
 def build_desk(b: RoomBuilder, frame, w: float, d: float) -> int:
+    """Desk: top, a drawer pedestal on a random side and a panel on the other; returns
+    its instance id."""
     inst = b.instance("furniture")
     mat = b.mats.furniture_surface()
     h = b.u(0.72, 0.76)
@@ -284,6 +295,8 @@ def _try_wall_item(b: RoomBuilder, builder, w: float, z0: float, z1: float, trie
 
 
 def build_window(b: RoomBuilder) -> bool:
+    """Window in a free stretch of wall: glass showing the outside, frame, sill and
+    maybe curtains; False if no wall had room."""
     w = b.u(0.7, 1.6)
     sill = b.u(0.75, 1.0)
     top = min(b.H - 0.25, sill + b.u(0.9, 1.5))
@@ -353,6 +366,8 @@ def build_door(b: RoomBuilder) -> bool:
 
 
 def build_picture(b: RoomBuilder) -> bool:
+    """Framed painting flat on a wall at eye height (a novel class flush with the wall);
+    False if no wall had room."""
     w, h = b.u(0.3, 1.1), b.u(0.3, 0.8)
     zc = b.u(1.2, min(1.75, b.H - h / 2 - 0.2))
 
@@ -369,6 +384,7 @@ def build_picture(b: RoomBuilder) -> bool:
 
 
 def build_wall_tv(b: RoomBuilder) -> bool:
+    """Wall-mounted 16:9 TV; False if no wall had room."""
     w = b.u(0.8, 1.3)
     zb = b.u(0.9, 1.3)
 
@@ -481,6 +497,8 @@ def place_books(b: RoomBuilder, s: Surface, standing: bool) -> int:
 
 
 def place_floor_object(b: RoomBuilder) -> bool:
+    """A cylindrical floor object or a potted plant (NYU-13 objects) on free floor; False
+    if no floor was free."""
     r = b.u(0.1, 0.2)
     plant = b.rng.random() >= 0.5
     leaf_r = r * b.u(1.1, 1.6) if plant else r

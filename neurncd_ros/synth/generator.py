@@ -151,6 +151,9 @@ class _PathBuilder:
         return bool(self.free(a + s * (b - a), margin).all())
 
     def next(self, pts: list[np.ndarray], heading: float) -> tuple[np.ndarray, float]:
+        """The next waypoint and heading: a random free point about ``waypoint_spacing``
+        away, reachable in a straight line, within 90 degrees of the heading if one is
+        (else in any direction); boxed in, the previous waypoint."""
         p = pts[-1]
         cfg = self.cfg
         n = 48

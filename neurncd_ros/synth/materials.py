@@ -1,7 +1,7 @@
 """Surface materials of the synthetic rooms: patterns and class-typical palettes.
 
 A material names a procedural pattern (evaluated on 3D surface points by
-``synth_render.albedo``) and up to three colours; ``MaterialBook`` draws
+``render.albedo``) and up to three colours; ``MaterialBook`` draws
 per-instance variations of the colours each class typically has, so classes are
 learnable from colour and geometry without any class having a single colour.
 """
@@ -12,7 +12,7 @@ import dataclasses
 
 import numpy as np
 
-# Texture patterns (see synth_render.albedo).
+# Texture patterns (see render.albedo).
 PLAIN, WOOD, STRIPES, CHECKER, PLANKS, FABRIC, PAINTING, SCREEN, OUTSIDE, SPINE = range(10)
 
 
@@ -99,6 +99,7 @@ class MaterialBook:
         return self.add(Material(PLAIN, base, _shade(base, 0.9), base, 8.0))
 
     def vivid(self) -> int:
+        """A saturated random colour for small objects (any hue: objects have no palette)."""
         base = _hsv(self.rng.random(), self.rng.uniform(0.4, 0.9), self.rng.uniform(0.35, 0.95))
         other = _hsv(self.rng.random(), self.rng.uniform(0.2, 0.8), self.rng.uniform(0.5, 1.0))
         pat = self.pick([PLAIN, PLAIN, STRIPES, CHECKER])
@@ -136,6 +137,7 @@ class MaterialBook:
         return self.add(Material(PLAIN, base, _shade(base, 0.94), base, 1.5))
 
     def floor(self) -> int:
+        """Floor material: wooden planks (half the rooms), checker tiles or carpet."""
         r = self.rng.random()
         if r < 0.5:
             base = jitter(self.rng, self.pick(WOODS), 0.04)

@@ -123,6 +123,7 @@ class RoomBuilder:
 
     # ---- primitives
     def instance(self, cls_name: str) -> int:
+        """A new instance id of NYU-13 class ``cls_name`` (parts added with it share it)."""
         i = self.next_inst
         self.next_inst += 1
         self.instances[i] = CLASS_ID[cls_name]

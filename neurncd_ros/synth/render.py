@@ -1,6 +1,6 @@
 """CPU ray caster for the synthetic rooms: depth, labels, procedural texture, sensor noise.
 
-(One module of about 540 lines: intersection, z-buffer, textures and the
+(One module, over 500 lines: intersection, z-buffer, textures and the
 sensor-noise model share the per-frame ray arrays and are tuned together.)
 
 All rays of a frame share the camera centre, so each part is intersected only
@@ -92,6 +92,7 @@ class SceneArrays:
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "SceneArrays":
+        """The flat arrays of ``scene`` (its parts, then the room's six faces)."""
         P = len(scene.parts)
         kind = np.array([p.kind for p in scene.parts], dtype=np.int8).reshape(P)
         centre = np.array([p.centre for p in scene.parts], dtype=np.float64).reshape(P, 3)

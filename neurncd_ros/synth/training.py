@@ -4,8 +4,8 @@ The default backbone trains on rendered frames of the synthetic seeds
 (:mod:`.seeds`). Frames are generated once per (seed, frames, config, generator
 source) and cached as npz under a temporary folder (never inside the
 repository). The key includes a hash of the generator's source files, so a
-changed generator never serves stale frames (a stale cache once inflated a
-validation score by 2 points).
+changed generator never serves stale frames (frames of an older generator
+would score the backbone on scenes it no longer describes).
 
 :func:`synthetic_data` returns what ``core.backbone.train.train_backbone``
 takes: train and validation arrays, and the record of where they came from.

@@ -1,6 +1,6 @@
 """ESANet R34-NBt1D: the public RGB-D segmentation network, and safe checkpoint loading.
 
-(One module of about 510 lines: the network's layers, its checkpoint-name
+(One module, over 500 lines: the network's layers, its checkpoint-name
 mapping and the safe loader must change together to keep the state_dict
 matching the released checkpoints.)
 
@@ -507,7 +507,8 @@ def load_esanet_checkpoint(path: str | os.PathLike, num_classes: int | None = No
                                   "(4-D conv weight); is it an ESANet R34-NBt1D state dict? "
                                   f"first keys: {list(sd)[:5]}")
         num_classes = int(head.shape[0])
-    model = ESANet(num_classes)
+    with torch.random.fork_rng(devices=[]):  # initial weights replaced below: global RNG kept
+        model = ESANet(num_classes)
     report = _mismatch_report(model.state_dict(), sd)
     if report:
         raise CheckpointError(f"checkpoint {path} does not fit ESANet R34-NBt1D with "

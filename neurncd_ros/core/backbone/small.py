@@ -115,7 +115,8 @@ class SEFusion(nn.Module):
 
 def _stage(cin: int, cout: int, dilations: tuple[int, ...]) -> nn.Sequential:
     """Stride-2 downsampling followed by NonBottleneck-1D blocks."""
-    return nn.Sequential(ConvBNReLU(cin, cout, 3, 2), *[NonBottleneck1D(cout, d) for d in dilations])
+    return nn.Sequential(ConvBNReLU(cin, cout, 3, 2),
+                         *[NonBottleneck1D(cout, d) for d in dilations])
 
 
 class PyramidPooling(nn.Module):
@@ -236,7 +237,10 @@ def load_weights(path: str, device: str = "cpu") -> SmallRGBDNet:
     if blob.get("arch_version") != ARCH_VERSION:
         raise ValueError(f"{path}: weights are for layout version {blob.get('arch_version')}, "
                          f"this code builds version {ARCH_VERSION}; retrain the backbone")
-    model = SmallRGBDNet(int(blob["num_classes"]), tuple(blob["widths"]))
+    # The layers' initial weights are replaced by the file's; drawing them from a forked
+    # generator leaves the process's global torch generator as it was (no hidden state).
+    with torch.random.fork_rng(devices=[]):
+        model = SmallRGBDNet(int(blob["num_classes"]), tuple(blob["widths"]))
     state = {k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()}
     model.load_state_dict(state, strict=True)
     return model.to(device).eval()

@@ -16,7 +16,6 @@ import numpy as np
 from ..camera import Intrinsics, check_pose, pose_from_tq
 from ..frame import Frame
 from ..params import param
-from ..sync import nearest
 
 
 KINDS = ("auto", "replica", "tum", "nyu", "nyu_labelled", "posetxt", "redwood")
@@ -158,6 +157,7 @@ def decode_depth(raw: np.ndarray, depth_format: str, depth_scale: float,
 
 def read_depth(path: Path, depth_format: str, depth_scale: float,
                max_depth_m: float = 0.0) -> np.ndarray:
+    """A depth image file in metres: its raw 16-bit values through :func:`decode_depth`."""
     return decode_depth(read_raw16(path), depth_format, depth_scale, max_depth_m)
 
 

@@ -42,15 +42,19 @@ from ..frame import Frame
 from ..params import build
 
 
-from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS, DEFAULT_PRESET,
-                            FolderConfig, _resolve, read_rgb, read_raw16,
-                            nyu_disparity_to_metres, sun_rotated_to_raw, decode_depth,
-                            read_depth, _camera, _make_frame, _subsample, _load_rows, _pose,
-                            read_tq_poses, read_tum_trajectory, read_matrix_rows,
-                            read_redwood_log, read_redwood_intrinsics, _NUM_RE, _indexed)
-from .replica import (_as_lookup, NYU13_MARKER, _replica_lookup, read_replica, read_labels,
-                      _replica_stamps, _read_intrinsics_json, _write_png, write_replica)
-from .tum import (_STAMP_RE, _stamp_of, seconds_to_ns, _tum_list, read_tum, write_tum)
+# Every name of the family modules is re-exported: callers import them from formats.
+from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS,  # noqa: F401
+                            DEFAULT_PRESET, FolderConfig, _resolve, read_rgb,  # noqa: F401
+                            read_raw16, nyu_disparity_to_metres, sun_rotated_to_raw,  # noqa: F401
+                            decode_depth, read_depth, _camera, _make_frame,  # noqa: F401
+                            _subsample, _load_rows, _pose, read_tq_poses,  # noqa: F401
+                            read_tum_trajectory, read_matrix_rows, read_redwood_log,  # noqa: F401
+                            read_redwood_intrinsics, _NUM_RE, _indexed)  # noqa: F401
+from .replica import (_as_lookup, NYU13_MARKER, _replica_lookup, read_replica,  # noqa: F401
+                      read_labels, _replica_stamps, _read_intrinsics_json,  # noqa: F401
+                      _write_png, write_replica)  # noqa: F401
+from .tum import (_STAMP_RE, _stamp_of, seconds_to_ns, _tum_list, read_tum,  # noqa: F401
+                  write_tum)  # noqa: F401
 
 
 def _numbered(folder: Path) -> list[Path]:

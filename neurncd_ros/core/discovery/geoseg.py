@@ -1,6 +1,6 @@
 """Geometric segmentation of a depth image into convex sub-instance segments.
 
-(One module of about 690 lines: the steps below share their vectorised
+(One module, over 500 lines: the steps below share their vectorised
 neighbour-pair helpers and one config, and are read in pipeline order.)
 
 After Furrer et al. 2018 ("Incremental object database: building 3D models
@@ -314,12 +314,21 @@ def _smallest_eigenvalue(a00, a01, a02, a11, a12, a22) -> np.ndarray:
     return np.where(safe, q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0), q).astype(q.dtype)
 
 
-def _pair_slices(h: int, w: int, dy: int, dx: int) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
-    """Slices (centre, neighbour) so that neighbour[...] is centre shifted by (dy, dx)."""
-    cy = slice(max(0, -dy), h - max(0, dy))
-    cx = slice(max(0, -dx), w - max(0, dx))
-    ny = slice(max(0, dy), h - max(0, -dy))
-    nx = slice(max(0, dx), w - max(0, -dx))
+Slices2D = tuple[slice, slice]
+
+
+def pair_slices(h: int, w: int, dy: int, dx: int) -> tuple[Slices2D, Slices2D]:
+    """Slices (centre, neighbour) of an (h, w) image: ``a[neighbour]`` is ``a[centre]``
+    shifted by (dy, dx), over every pixel whose neighbour lies inside the image.
+
+    The one neighbour-shift helper of the discovery code (the convexity and
+    distance edges here, the segment interior in :mod:`.modulation`). A shift
+    as large as the image leaves both slices empty.
+    """
+    cy = slice(max(0, -dy), max(0, h - max(0, dy)))
+    cx = slice(max(0, -dx), max(0, w - max(0, dx)))
+    ny = slice(max(0, dy), max(0, h - max(0, -dy)))
+    nx = slice(max(0, dx), max(0, w - max(0, -dx)))
     return (cy, cx), (ny, nx)
 
 
@@ -351,7 +360,7 @@ def convex_map(pts: np.ndarray, normals: np.ndarray, valid: np.ndarray, window: 
         for dx in steps:
             if dy == 0 and dx == 0:
                 continue
-            c, o = _pair_slices(h, w, dy, dx)
+            c, o = pair_slices(h, w, dy, dx)
             # (p_j - p_i) . (-n_i) > mask threshold: convex, else concave -> n_i . n_j
             proj = ((P[0][c] - P[0][o]) * N[0][c] + (P[1][c] - P[1][o]) * N[1][c]
                     + (P[2][c] - P[2][o]) * N[2][c])
@@ -373,7 +382,7 @@ def max_distance_edges(pts: np.ndarray, valid: np.ndarray, window: int, cfg: Geo
         for dx in range(-r, r + 1):
             if dy == 0 and dx == 0:
                 continue
-            c, o = _pair_slices(h, w, dy, dx)
+            c, o = pair_slices(h, w, dy, dx)
             diff = pts[c] - pts[o]
             d = np.sqrt(np.einsum("...i,...i->...", diff, diff))
             np.maximum(best[c], np.where(valid[o], d, 0), out=best[c])

@@ -44,6 +44,7 @@ import math
 import numpy as np
 
 from ..params import param
+from .geoseg import pair_slices
 from ..uncertainty import softmax  # noqa: F401 (the one softmax; re-exported)
 
 
@@ -107,10 +108,9 @@ def interior(segments: np.ndarray, radius: int) -> np.ndarray:
     h, w = segments.shape
     for r in range(1, radius + 1):
         for dy, dx in ((r, 0), (-r, 0), (0, r), (0, -r)):
-            same = np.zeros((h, w), bool)
-            ys, yd = slice(max(dy, 0), h + min(dy, 0)), slice(max(-dy, 0), h + min(-dy, 0))
-            xs, xd = slice(max(dx, 0), w + min(dx, 0)), slice(max(-dx, 0), w + min(-dx, 0))
-            same[yd, xd] = segments[yd, xd] == segments[ys, xs]
+            same = np.zeros((h, w), bool)  # a neighbour outside the image is not the same
+            c, o = pair_slices(h, w, dy, dx)
+            same[c] = segments[c] == segments[o]
             inside &= same
     return inside
 

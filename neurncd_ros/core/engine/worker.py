@@ -16,6 +16,7 @@ from .health import Health
 
 
 class Worker:
+    """One background thread running ``step(cancel)`` each time it is woken (module doc)."""
     def __init__(self, name: str, step: Callable[[threading.Event], bool], health: Health,
                  idle_wait_s: float = 0.1) -> None:
         self.name = name

@@ -139,7 +139,7 @@ def geometry_only(keep: dict, cfg, seed: int = 0) -> list[np.ndarray]:
     _, cl = np.unique(cl, return_inverse=True)
     cent = np.stack([D[pick][cl == c].mean(0) for c in range(cl.max() + 1)])
     lab = np.argmin(((D[:, None, :] - cent[None]) ** 2).sum(-1), axis=1)
-    seg_lab: dict[tuple[int, int], int] = {o: int(l) for o, l in zip(owner, lab)}
+    seg_lab: dict[tuple[int, int], int] = {o: int(c) for o, c in zip(owner, lab)}
     out = []
     for i, seg in enumerate(segs):
         n = int(seg.max()) + 1 if seg.max() >= 0 else 0

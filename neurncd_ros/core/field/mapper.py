@@ -1,6 +1,6 @@
 """Incremental Embedding-NeRF mapper: keyframes in, rendered embedding and entropy out.
 
-(One module of about 520 lines: threading, pausing, snapshots, rendering and
+(One module, over 500 lines: threading, pausing, snapshots, rendering and
 persistence all guard the same model state, and read best side by side.)
 
 The mapper owns the keyframe buffer, the scene box, the optimiser, the

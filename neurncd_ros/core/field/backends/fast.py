@@ -21,7 +21,7 @@ import torch
 from ...params import param
 from .. import losses, renderer, samplers
 from ..fields import TriPlaneField
-from . import register
+from .registry import register
 from .base import FieldModel, RayBatch, evaluate, render_samples
 
 
@@ -66,6 +66,10 @@ class FastConfig:
 
 @register("fast", FastConfig)
 class FastModel(FieldModel):
+    """Tri-plane field trained on depth-guided samples (photometric, embedding, depth and
+    free-space losses); renders depth-guided where a ray has depth, coarse-to-fine
+    elsewhere."""
+
     box_holds_parameters = True
 
     def __init__(self, cfg: FastConfig, channels: int, shared, generator: torch.Generator

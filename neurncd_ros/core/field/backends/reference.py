@@ -15,7 +15,7 @@ import torch
 from ...params import param
 from .. import losses, samplers
 from ..fields import NerfField
-from . import register
+from .registry import register
 from .base import FieldModel, RayBatch, render_samples
 
 
@@ -33,6 +33,9 @@ class ReferenceConfig:
 
 @register("reference", ReferenceConfig)
 class ReferenceModel(FieldModel):
+    """Semantic-NeRF's two MLPs: a coarse one on stratified samples, a fine one on those
+    plus importance samples, photometric and embedding losses on both (the paper's
+    setting); renders the fine pass and never uses depth."""
     def __init__(self, cfg: ReferenceConfig, channels: int, shared,
                  generator: torch.Generator) -> None:
         super().__init__()
