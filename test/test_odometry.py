@@ -204,3 +204,51 @@ def test_icl_fixture_wide_baselines_are_reported_and_the_overlapping_pair_tracks
     true = invert_pose(frames[3].pose) @ frames[4].pose
     assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.10
     assert odo_mod.rotation_deg(invert_pose(true) @ est) < 3.0
+
+
+def _tum_folder_without_poses(dst: Path) -> Path:
+    """The Redwood fixture's images in the TUM layout (rgb.txt, depth.txt), no groundtruth.txt."""
+    import shutil
+
+    src = REAL / "redwood_livingroom"
+    for sub in ("rgb", "depth"):
+        (dst / sub).mkdir(parents=True)
+    lines = {"rgb": ["# colour"], "depth": ["# depth"]}
+    for i, (c, d) in enumerate(zip(sorted((src / "color").iterdir()),
+                                   sorted((src / "depth").iterdir()))):
+        t = f"{1.0 + i / 30:.6f}"
+        shutil.copy(c, dst / "rgb" / f"{t}.jpg")
+        shutil.copy(d, dst / "depth" / f"{t}.png")
+        lines["rgb"].append(f"{t} rgb/{t}.jpg")
+        lines["depth"].append(f"{t} depth/{t}.png")
+    for sub, text in lines.items():
+        (dst / f"{sub}.txt").write_text("\n".join(text) + "\n")
+    return dst
+
+
+def test_cli_convert_of_a_folder_without_poses_fails_cleanly_then_converts(tmp_path, capsys):
+    """A TUM folder without a trajectory: plain convert says what to do and leaves no
+    half-written bag, so the suggested command then works on the same --out; the poses
+    match the Redwood trajectory."""
+    from neurncd_ros import cli
+
+    src = _tum_folder_without_poses(tmp_path / "tum")
+    out = tmp_path / "posed.mcap"
+    opts = ["--opt", "depth_scale=1000", "--opt", "intrinsics=[525, 525, 319.5, 239.5]"]
+    assert cli.main(["convert", str(src), "--out", str(out), *opts]) == 1
+    assert "convert --poses odometry" in capsys.readouterr().err
+    assert not out.exists()
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     *opts]) == 0
+    assert "5 frames tracked, 0 lost" in capsys.readouterr().out
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     *opts]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     "--overwrite", *opts]) == 0
+    got = list(bag.FrameReader(out))
+    truth = list(formats.read_folder(REAL / "redwood_livingroom"))
+    assert len(got) == 5
+    for g, t in zip(got, truth):
+        rel = invert_pose(truth[0].pose) @ t.pose
+        assert np.linalg.norm(rel[:3, 3] - g.pose[:3, 3]) < 0.01
