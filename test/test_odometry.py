@@ -91,15 +91,34 @@ def test_loss_is_reported_and_the_walk_is_relocalised(walk, caplog):
     assert odo.counts["lost"] == 2 and odo.counts["relocalised"] == 1
 
 
-def test_a_long_loss_starts_a_new_segment(walk):
+def test_a_long_loss_starts_a_new_segment_on_a_frame_with_depth(walk):
+    """Lost for new_segment_after frames: a new segment starts, but not on a frame
+    without depth (a keyframe with no points would lose every frame after it)."""
     odo = RGBDOdometry(OdometryConfig(new_segment_after=3), initial_pose=walk[0].pose)
     _track_all(odo, walk[:5])
     f = walk[5]
     dark = [odo.track(f.stamp_ns + k, np.zeros_like(f.rgb), np.zeros_like(f.depth),
-                      f.intrinsics) for k in range(3)]
-    assert [r.status for r in dark[:2]] == ["lost", "lost"]
-    assert dark[2].status == "new_segment" and dark[2].segment == 1 and dark[2].keyframe
-    assert odo.segment == 1
+                      f.intrinsics) for k in range(4)]
+    assert [r.status for r in dark] == ["lost"] * 4 and odo.segment == 0
+    assert "no new segment yet" in dark[3].reason and "min_inliers" in dark[3].reason
+    # Then another room: a new segment there, tracked on from its first frame.
+    room = list(synth.generate(2001, 4, synth.SynthConfig()))
+    res = [odo.track(f.stamp_ns + 10 + k, r.rgb, r.depth, r.intrinsics)
+           for k, r in enumerate(room)]
+    assert res[0].status == "new_segment" and res[0].segment == 1 and res[0].keyframe
+    assert [r.status for r in res[1:]] == ["ok"] * 3 and odo.segment == 1
+    rel = [invert_pose(res[0].pose) @ r.pose for r in res]
+    true = [invert_pose(room[0].pose) @ r.pose for r in room]
+    assert max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(rel, true)) < 0.015
+
+
+def test_tracking_does_not_start_on_a_frame_without_depth(walk):
+    odo = RGBDOdometry()
+    f = walk[0]
+    r = odo.track(f.stamp_ns, f.rgb, np.zeros_like(f.depth), f.intrinsics)
+    assert r.status == "lost" and r.pose is None and "no tracking started" in r.reason
+    r = odo.track(walk[1].stamp_ns, walk[1].rgb, walk[1].depth, walk[1].intrinsics)
+    assert r.status == "ok" and r.keyframe and np.allclose(r.pose, np.eye(4))
 
 
 def test_jump_is_refused(walk):
