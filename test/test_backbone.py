@@ -350,6 +350,9 @@ def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
     bag.write_bag(bare, (_without_ground_truth(f) for f in synth.generate(6, 2, cfg)))
     assert cli.main(common + ["--data", str(bare), str(paths[0])]) == 1
     assert "bare.mcap: no frame with semantic ground truth" in capsys.readouterr().err
+    missing = tmp_path / "no.pt"
+    assert cli.main(common + ["--data", *map(str, paths), "--init", str(missing)]) == 1
+    assert f"--init {missing}: no such weight file" in capsys.readouterr().err
 
 
 def _without_ground_truth(frame):
