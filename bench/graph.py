@@ -22,8 +22,18 @@ default backbone on one 320x240 frame, 1 thread, median) to compare machines:
 on a machine slower than a 40 ms probe, ``probe_scale`` = probe / 40 and the
 ``*_at_probe_40ms`` keys give the rate times it and the latencies divided by it.
 
+``--poses odometry`` plays the same scene from a bag without its pose topic
+(and no /tf), with ``mapper_node.pose_source`` odometry: the mapper's pose
+stage tracks the frames itself and publishes /camera/pose. It writes
+bench/results/graph_odometry.json and graph_odometry.png (graph.json is left
+alone) with the same figures plus ``mapper_pose_summary`` (the odometry's own
+count of tracked and lost frames and its ms per frame inside the mapper); the
+offline comparison runs ``neurncd run``'s path for such a bag (the poses
+estimated by the same odometry).
+
     .venv/bin/python bench/graph.py            # seed 2000, 300 frames
     .venv/bin/python bench/graph.py --frames 150 --seed 2001
+    .venv/bin/python bench/graph.py --poses odometry
 """
 
 from __future__ import annotations
@@ -87,17 +97,20 @@ RECORDER = textwrap.dedent("""
 """)
 
 
-def make_bag(seed: int, frames: int) -> Path:
+def make_bag(seed: int, frames: int, poses: str = "bag") -> Path:
+    """The scene's bag (cached); ``poses`` "odometry": the same frames without a pose topic."""
     from neurncd_ros import synth
     from neurncd_ros.core.data.bag import write_bag
 
+    suffix = "_noposes" if poses == "odometry" else ""
     path = Path(os.environ.get("NEURNCD_GRAPH_CACHE", "/tmp/neurncd_graph")) / \
-        f"graph_s{seed}_n{frames}.mcap"
+        f"graph_s{seed}_n{frames}{suffix}.mcap"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         from tqdm import tqdm
         write_bag(path, tqdm(synth.generate(seed, frames, synth.SynthConfig()), total=frames,
-                             desc=f"synth seed {seed}", unit="frame"))
+                             desc=f"synth seed {seed}", unit="frame"),
+                  pose_mode="none" if poses == "odometry" else "topic")
     return path
 
 
@@ -210,16 +223,18 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
     with np.load(str(rec_out) + ".npz") as z:
         images = {int(k): z[k] for k in z.files}
     text = (work / "bringup.log").read_text()
-    iterations = 0
+    iterations, pose_summary = 0, None
     for line in text.splitlines():
         if "[mapper]" in line and "iterations" in line and "frames paired" in line:
             iterations = int(line.split("iterations ")[1].split(",")[0])
+            if "; pose source" in line:
+                pose_summary = line.split("; pose source", 1)[1].strip(" :")
     return {"rec": rec, "images": images, "peak_rss_gb": peak, "wall_s": wall,
             "bringup_code": bringup.returncode, "log": text,
             "cpu_share": {n: round(cpu[n] / max(last_seen[n] - first_seen[n], 1e-3), 3)
                           for n in cpu},
             "shutdown_s": {n: round(v, 2) for n, v in shutdown_s.items()},
-            "mapper_iterations": iterations}
+            "mapper_iterations": iterations, "pose_summary": pose_summary}
 
 
 def score(frames: dict, labels: dict) -> dict:
@@ -275,18 +290,24 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY:=VALUE",
                     help="ROS parameter override passed to every node (-p)")
     ap.add_argument("--no-offline", action="store_true", help="skip the neurncd run part")
+    ap.add_argument("--poses", choices=("bag", "odometry"), default="bag",
+                    help="bag: the bag's pose topic; odometry: a bag without poses, the "
+                    "mapper's pose stage tracks them (writes graph_odometry.json)")
     args = ap.parse_args()
     from neurncd_ros import config
     from neurncd_ros.core.data.bag import FrameReader
     from neurncd_ros.synth import seeds
 
     seed = seeds.TEST[0] if args.seed is None else args.seed
-    bag = make_bag(seed, args.frames)
-    work = Path("/tmp/neurncd_graph") / f"run_s{seed}"
+    odometry = args.poses == "odometry"
+    name = "graph_odometry" if odometry else "graph"
+    bag = make_bag(seed, args.frames, args.poses)
+    work = Path("/tmp/neurncd_graph") / f"run_s{seed}{'_odometry' if odometry else ''}"
     work.mkdir(parents=True, exist_ok=True)
     probe = machine_probe_ms()
     print(f"machine probe: default backbone {probe:.1f} ms per 320x240 frame (1 thread)")
-    live = run_live(bag, work, sum((["-p", s] for s in args.set), []))
+    params = (["mapper_node.pose_source:=odometry"] if odometry else []) + args.set
+    live = run_live(bag, work, sum((["-p", s] for s in params), []))
     if live["bringup_code"] != 0:
         raise SystemExit(f"bringup failed ({live['bringup_code']}):\n{live['log'][-3000:]}")
     rec = live["rec"]
@@ -298,9 +319,11 @@ def main() -> None:
     t_lab = sorted(t for t in labels.values() if t <= bag_end)
     rate = (len(t_lab) - 1) / (t_lab[-1] - t_lab[0]) if len(t_lab) > 1 else 0.0
     kf_in_time = [s for s in keyframes if s in labels and labels[s] <= bag_end + 10.0]
-    frames = {f.stamp_ns: f for f in FrameReader(bag)}
+    frames = {f.stamp_ns: f for f in FrameReader(bag, with_poses=not odometry)}
     res = {
         "seed": seed, "frames": args.frames, "fps": 30, "size": "320x240",
+        "poses": "mapper odometry (bag without poses)" if odometry else "bag pose topic",
+        "mapper_pose_summary": live["pose_summary"],
         "machine_probe_ms": round(probe, 1),
         "label_rate_hz": round(rate, 2),
         "latency_median_s": round(float(np.median(lat)), 3) if lat else None,
@@ -332,17 +355,22 @@ def main() -> None:
         import torch
         torch.set_num_threads(1)
         t = time.perf_counter()
-        engine = OfflineEngine(config.load())
+        cfg = config.load()
+        engine = OfflineEngine(cfg)
+        stream = frames.values()
+        if odometry:  # as neurncd run does for a bag without poses
+            from neurncd_ros.core.odometry import with_odometry
+            stream = with_odometry(stream, cfg.odometry)
         off = {o.frame.stamp_ns: o.labels.labels
-               for o in engine.run(frames.values(), total=len(frames))}
+               for o in engine.run(stream, total=len(frames))}
         res["offline_seconds"] = round(time.perf_counter() - t, 1)
         res["offline_labels"] = len(off)
         res.update({f"offline_{k}": v for k, v in score(frames, off).items()})
     res["cores"] = os.cpu_count()
     res["commit"] = commit()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "graph.json").write_text(json.dumps(res, indent=1, sort_keys=True))
-    picture(depth, labels, keyframes, res, RESULTS / "graph.png")
+    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    picture(depth, labels, keyframes, res, RESULTS / f"{name}.png")
     print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, 320x240 "
           f"(machine probe {res['machine_probe_ms']} ms):")
     for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "probe_scale",
@@ -351,9 +379,9 @@ def main() -> None:
               "frames_labelled_share", "peak_rss_gb_all_nodes", "cpu_share_per_node",
               "mapper_iterations_per_s", "shutdown_s", "online_miou_all", "online_miou_known",
               "online_miou_novel", "offline_miou_all", "offline_miou_known",
-              "offline_miou_novel"):
+              "offline_miou_novel", "poses", "mapper_pose_summary"):
         print(f"  {k:28s} {res.get(k)}")
-    print(f"wrote {RESULTS / 'graph.json'}")
+    print(f"wrote {RESULTS / (name + '.json')}")
 
 
 if __name__ == "__main__":

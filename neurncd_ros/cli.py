@@ -110,7 +110,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     n = formats.convert(args.src, args.out, kind=args.kind, storage=args.storage,
                         tf_parent=args.tf_parent, tf_child=args.tf_child, progress=True,
                         to=args.to, poses=args.poses, odometry=cfg.odometry, report=report,
-                        **{**folder_opts, **opts})
+                        overwrite=args.overwrite, **{**folder_opts, **opts})
     print(f"converted {n} frames from {args.src} to {args.out} ({args.to}) in "
           f"{time.perf_counter() - t0:.1f} s")
     if report:
@@ -125,15 +125,16 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     cfg = load_config(args)
     reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync)
-    n, first = 0, None
+    n, with_gt, first = 0, 0, None
     for frame in reader:
         first = first or frame
         n += 1
+        with_gt += frame.semantic is not None
     print(f"{args.bag}: {n} synchronised frames")
     if first is not None:
         i = first.intrinsics
-        print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f}, ground truth: "
-              f"{'yes' if first.semantic is not None else 'no'}")
+        print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f}, semantic ground "
+              f"truth in {with_gt} of {n} frames")
     print("  " + reader.summary())
     return 0
 
@@ -276,6 +277,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--poses", choices=("source", "odometry"), default="source",
                    help="source: the input's own poses; odometry: estimate them from the "
                    "images (odometry.* parameters), for inputs without poses")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output bag (a failed conversion leaves none)")
     p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame")
     p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame")
     p.add_argument("--opt", action="append", metavar="KEY=VALUE",

@@ -344,6 +344,14 @@ def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
     b = bb.load_backbone(bb.BackboneConfig(checkpoint=str(out), num_threads=1))
     frame = next(iter(synth.generate(5, 1, cfg)))
     assert b.predict(frame.rgb, frame.depth).shape == (48, 64, 9)
+    # By path in the engine, as `neurncd run --set backbone.checkpoint=...` and the
+    # embedding node's `-p backbone.checkpoint:=...` give it.
+    run = tmp_path / "run"
+    assert cli.main(["run", "--bag", str(paths[0]), "--out", str(run), "--set",
+                     f"backbone.checkpoint={out}", "--set", "run.overlays=0"]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["backbone_checkpoint"] == str(out) and metrics["labelled"] >= 1
+    capsys.readouterr()
     # By files: the last file validates.
     assert cli.main(common + ["--data", *map(str, paths), "--val-split", "files"]) == 0
     rec = json.loads(out.with_suffix(".json").read_text())
@@ -353,6 +361,9 @@ def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
     bag.write_bag(bare, (_without_ground_truth(f) for f in synth.generate(6, 2, cfg)))
     assert cli.main(common + ["--data", str(bare), str(paths[0])]) == 1
     assert "bare.mcap: no frame with semantic ground truth" in capsys.readouterr().err
+    missing = tmp_path / "no.pt"
+    assert cli.main(common + ["--data", *map(str, paths), "--init", str(missing)]) == 1
+    assert f"--init {missing}: no such weight file" in capsys.readouterr().err
 
 
 def _without_ground_truth(frame):

@@ -91,15 +91,34 @@ def test_loss_is_reported_and_the_walk_is_relocalised(walk, caplog):
     assert odo.counts["lost"] == 2 and odo.counts["relocalised"] == 1
 
 
-def test_a_long_loss_starts_a_new_segment(walk):
+def test_a_long_loss_starts_a_new_segment_on_a_frame_with_depth(walk):
+    """Lost for new_segment_after frames: a new segment starts, but not on a frame
+    without depth (a keyframe with no points would lose every frame after it)."""
     odo = RGBDOdometry(OdometryConfig(new_segment_after=3), initial_pose=walk[0].pose)
     _track_all(odo, walk[:5])
     f = walk[5]
     dark = [odo.track(f.stamp_ns + k, np.zeros_like(f.rgb), np.zeros_like(f.depth),
-                      f.intrinsics) for k in range(3)]
-    assert [r.status for r in dark[:2]] == ["lost", "lost"]
-    assert dark[2].status == "new_segment" and dark[2].segment == 1 and dark[2].keyframe
-    assert odo.segment == 1
+                      f.intrinsics) for k in range(4)]
+    assert [r.status for r in dark] == ["lost"] * 4 and odo.segment == 0
+    assert "no new segment yet" in dark[3].reason and "min_inliers" in dark[3].reason
+    # Then another room: a new segment there, tracked on from its first frame.
+    room = list(synth.generate(2001, 4, synth.SynthConfig()))
+    res = [odo.track(f.stamp_ns + 10 + k, r.rgb, r.depth, r.intrinsics)
+           for k, r in enumerate(room)]
+    assert res[0].status == "new_segment" and res[0].segment == 1 and res[0].keyframe
+    assert [r.status for r in res[1:]] == ["ok"] * 3 and odo.segment == 1
+    rel = [invert_pose(res[0].pose) @ r.pose for r in res]
+    true = [invert_pose(room[0].pose) @ r.pose for r in room]
+    assert max(np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(rel, true)) < 0.015
+
+
+def test_tracking_does_not_start_on_a_frame_without_depth(walk):
+    odo = RGBDOdometry()
+    f = walk[0]
+    r = odo.track(f.stamp_ns, f.rgb, np.zeros_like(f.depth), f.intrinsics)
+    assert r.status == "lost" and r.pose is None and "no tracking started" in r.reason
+    r = odo.track(walk[1].stamp_ns, walk[1].rgb, walk[1].depth, walk[1].intrinsics)
+    assert r.status == "ok" and r.keyframe and np.allclose(r.pose, np.eye(4))
 
 
 def test_jump_is_refused(walk):
@@ -204,3 +223,51 @@ def test_icl_fixture_wide_baselines_are_reported_and_the_overlapping_pair_tracks
     true = invert_pose(frames[3].pose) @ frames[4].pose
     assert np.linalg.norm(est[:3, 3] - true[:3, 3]) < 0.10
     assert odo_mod.rotation_deg(invert_pose(true) @ est) < 3.0
+
+
+def _tum_folder_without_poses(dst: Path) -> Path:
+    """The Redwood fixture's images in the TUM layout (rgb.txt, depth.txt), no groundtruth.txt."""
+    import shutil
+
+    src = REAL / "redwood_livingroom"
+    for sub in ("rgb", "depth"):
+        (dst / sub).mkdir(parents=True)
+    lines = {"rgb": ["# colour"], "depth": ["# depth"]}
+    for i, (c, d) in enumerate(zip(sorted((src / "color").iterdir()),
+                                   sorted((src / "depth").iterdir()))):
+        t = f"{1.0 + i / 30:.6f}"
+        shutil.copy(c, dst / "rgb" / f"{t}.jpg")
+        shutil.copy(d, dst / "depth" / f"{t}.png")
+        lines["rgb"].append(f"{t} rgb/{t}.jpg")
+        lines["depth"].append(f"{t} depth/{t}.png")
+    for sub, text in lines.items():
+        (dst / f"{sub}.txt").write_text("\n".join(text) + "\n")
+    return dst
+
+
+def test_cli_convert_of_a_folder_without_poses_fails_cleanly_then_converts(tmp_path, capsys):
+    """A TUM folder without a trajectory: plain convert says what to do and leaves no
+    half-written bag, so the suggested command then works on the same --out; the poses
+    match the Redwood trajectory."""
+    from neurncd_ros import cli
+
+    src = _tum_folder_without_poses(tmp_path / "tum")
+    out = tmp_path / "posed.mcap"
+    opts = ["--opt", "depth_scale=1000", "--opt", "intrinsics=[525, 525, 319.5, 239.5]"]
+    assert cli.main(["convert", str(src), "--out", str(out), *opts]) == 1
+    assert "convert --poses odometry" in capsys.readouterr().err
+    assert not out.exists()
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     *opts]) == 0
+    assert "5 frames tracked, 0 lost" in capsys.readouterr().out
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     *opts]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli.main(["convert", str(src), "--out", str(out), "--poses", "odometry",
+                     "--overwrite", *opts]) == 0
+    got = list(bag.FrameReader(out))
+    truth = list(formats.read_folder(REAL / "redwood_livingroom"))
+    assert len(got) == 5
+    for g, t in zip(got, truth):
+        rel = invert_pose(truth[0].pose) @ t.pose
+        assert np.linalg.norm(rel[:3, 3] - g.pose[:3, 3]) < 0.01

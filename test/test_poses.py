@@ -22,18 +22,25 @@ def walk():
     return list(synth.generate(1002, 30, synth.SynthConfig(width=160, height=120)))
 
 
-def _stage(source: str, clock=None, tf_available: bool = True) -> PoseStage:
+def _stage(source: str, clock=None, tf_available: bool = True, log=None, odometry=None,
+           **node) -> PoseStage:
     cfg = config.default()
-    node = dataclasses.replace(cfg.mapper_node, pose_source=source, pose_auto_wait_s=1.0)
-    return PoseStage(node, cfg.odometry, cfg.topics, Health("mapper"), clock=clock or Clock(),
-                     tf_available=tf_available)
+    node = dataclasses.replace(cfg.mapper_node, pose_source=source, pose_auto_wait_s=1.0,
+                               **node)
+    return PoseStage(node, odometry or cfg.odometry, cfg.topics,
+                     Health("mapper", log, node.log_throttle_s),
+                     clock=clock or Clock(), tf_available=tf_available)
 
 
-def _feed_images(st: PoseStage, frames) -> list:
+def _feed_images(st: PoseStage, frames, embedded=lambda i: True) -> list:
+    """Colour and depth of each frame, then its embedding's stamp where the embedding
+    node embedded it, as the mapper node hands them on."""
     out = []
-    for f in frames:
+    for i, f in enumerate(frames):
         out += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
         out += st.offer_image("color", f.stamp_ns, f.rgb, f.intrinsics)
+        if embedded(i):
+            out += st.offer_embedding(f.stamp_ns)
     return out
 
 
@@ -59,7 +66,8 @@ def test_auto_falls_back_to_odometry_that_follows_the_camera(walk):
     clock.t = 2.0
     poses = dict(_feed_images(st, walk[5:]))
     assert st.mode == "odometry" and st.publishes
-    assert len(poses) >= 20
+    # The frames tracked while the choice was open are handed on too.
+    assert sorted(poses) == [f.stamp_ns for f in walk]
     # Relative motion matches the true one (the odometry's world is its first frame).
     first = walk[0].pose
     for f in walk[5::6]:
@@ -67,6 +75,70 @@ def test_auto_falls_back_to_odometry_that_follows_the_camera(walk):
             true_rel = invert_pose(first) @ f.pose
             dt, dr = pose_distance(true_rel, poses[f.stamp_ns])
             assert dt < 0.05 and dr < 3.0, (dt, dr)
+
+
+def test_odometry_tracks_only_the_frames_that_were_embedded(walk):
+    """odometry_frames embedded: a third of the frames embedded, a third tracked (the
+    mapper uses no other); all: every colour+depth pair, embeddings or not."""
+    st = _stage("odometry")
+    poses = dict(_feed_images(st, walk, embedded=lambda i: i % 3 == 0))
+    assert sorted(poses) == [f.stamp_ns for f in walk[::3]]
+    assert st.odometry.frames == len(walk[::3]) and st.publishes
+    assert st.summary().startswith(f"pose source odometry: {len(walk[::3])} frames tracked")
+    first = walk[0].pose
+    for f in walk[::3]:
+        dt, dr = pose_distance(invert_pose(first) @ f.pose, poses[f.stamp_ns])
+        assert dt < 0.03 and dr < 2.0, (dt, dr)
+    # A busy mapper may take an embedding before its frame's images: tracked when they come.
+    st = _stage("odometry")
+    late = []
+    for f in walk[:6]:
+        late += st.offer_embedding(f.stamp_ns)
+        late += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+        late += st.offer_image("color", f.stamp_ns, f.rgb, f.intrinsics)
+    assert [s for s, _ in late] == [f.stamp_ns for f in walk[:6]]
+    # Images before the first camera info: tracked with the intrinsics known by then.
+    st = _stage("odometry")
+    f = walk[0]
+    st.offer_image("depth", f.stamp_ns, f.depth, None)
+    st.offer_image("color", f.stamp_ns, f.rgb, None)
+    assert [s for s, _ in st.offer_embedding(f.stamp_ns, f.intrinsics)] == [f.stamp_ns]
+    st = _stage("odometry", odometry_frames="all")
+    assert len(_feed_images(st, walk, embedded=lambda i: False)) == len(walk)
+    assert st.odometry.frames == len(walk)
+    # Embeddings 0.3 s apart (a busy embedding node): frames between them are tracked
+    # too, one per odometry_gap_s (0.1 s, every third frame), so steps stay short.
+    st = _stage("odometry")
+    poses = dict(_feed_images(st, walk, embedded=lambda i: i % 9 == 0))
+    assert {f.stamp_ns for f in walk[::9]} <= set(poses)
+    assert sorted(poses) == [f.stamp_ns for f in walk[:28:3]]
+    st = _stage("odometry", odometry_gap_s=0.0)
+    poses = dict(_feed_images(st, walk, embedded=lambda i: i % 9 == 0))
+    assert sorted(poses) == [f.stamp_ns for f in walk[::9]]
+
+
+def test_odometry_losses_are_warnings_and_such_frames_get_no_pose(walk):
+    """A covered lens for 4 frames: each is reported as lost (a warning naming the frame)
+    and gets no pose; with new_segment_after 2 the first frame with depth after it
+    starts a new segment, a warning too."""
+    logs = []
+    cfg = dataclasses.replace(config.default().odometry, new_segment_after=2)
+    st = _stage("odometry", log=lambda level, text: logs.append((level, text)), odometry=cfg,
+                log_throttle_s=0.0)
+    covered = [dataclasses.replace(f, rgb=np.zeros_like(f.rgb), depth=np.zeros_like(f.depth))
+               for f in walk[10:14]]
+    other = list(synth.generate(2001, 3, synth.SynthConfig(width=160, height=120)))
+    moved = [dataclasses.replace(o, stamp_ns=walk[-1].stamp_ns + (k + 1) * 33_000_000)
+             for k, o in enumerate(other)]
+    poses = dict(_feed_images(st, walk[:10] + covered + moved))
+    assert not set(poses) & {f.stamp_ns for f in covered}
+    assert {f.stamp_ns for f in walk[:10] + moved} <= set(poses)
+    lost = [t for lvl, t in logs if "odometry lost" in t]
+    assert len(lost) == 4 and all(lvl == 1 for lvl, t in logs if "odometry lost" in t)
+    assert str(covered[0].stamp_ns) in lost[0]
+    segment = [(lvl, t) for lvl, t in logs if "odometry new_segment" in t]
+    assert len(segment) == 1 and segment[0][0] == 1 and st.odometry.segment == 1
+    assert st.health.counts["odometry_lost"] == 4
 
 
 def test_tf_poses_are_looked_up_at_each_frame_and_interpolated(walk):

@@ -23,7 +23,8 @@ colour and depth alone, frame to keyframe:
   a place tracks against the keyframe seen there instead of accumulating drift);
 - **tracking loss** is never silent: every result has a status and a reason.
   After ``new_segment_after`` lost frames the odometry starts a new map
-  segment at the last good pose (``status="new_segment"``): poses of the new
+  segment at the last good pose (``status="new_segment"``) on the first frame
+  with depth enough to track against (a covered lens waits): poses of the new
   segment are consistent among themselves, not with the old one.
 
 Poses are 4x4 float64 camera-to-world in OpenCV optical axes; the world frame
@@ -459,6 +460,10 @@ class RGBDOdometry:
                       "segment")
             return self._new_segment(cur, self._last_pose, reason)
         if self._ref is None:
+            if not self._has_depth(cur):
+                self.counts["lost"] += 1
+                return TrackResult(None, "lost", 0.0, len(cur.points),
+                                   f"no tracking started: {self._depth_note(cur)}")
             return self._new_segment(cur, self.initial_pose, "first frame")
         if self._lost:
             return self._relocalise(cur)
@@ -511,10 +516,21 @@ class RGBDOdometry:
         self.counts["lost"] += 1
         log.warning("odometry: frame %d: %s", cur.stamp_ns, reason)
         if self.cfg.new_segment_after and self._lost >= self.cfg.new_segment_after:
-            self.counts["lost"] -= 1
-            return self._new_segment(cur, self._last_pose,
-                                     f"{reason}; lost for {self._lost} frames: new segment")
+            if self._has_depth(cur):
+                self.counts["lost"] -= 1
+                return self._new_segment(cur, self._last_pose,
+                                         f"{reason}; lost for {self._lost} frames: new segment")
+            # A keyframe without depth would lose every frame after it: wait for depth.
+            reason += f"; no new segment yet: {self._depth_note(cur)}"
         return TrackResult(None, "lost", fit, inl, reason, self._segment)
+
+    def _has_depth(self, view: _View) -> bool:
+        """Enough depth points to be a keyframe (``min_inliers``)."""
+        return len(view.points) >= self.cfg.min_inliers
+
+    def _depth_note(self, view: _View) -> str:
+        return (f"the frame has {len(view.points)} depth points, a keyframe needs "
+                f"{self.cfg.min_inliers} (odometry.min_inliers)")
 
     def _relocalise(self, cur: _View) -> TrackResult:
         best_fit, best_inl = 0.0, 0

@@ -10,12 +10,16 @@ discovery always has the depth a rendering belongs to. Labels coming back on
 /neurncd/labels free the renderer (at most ``max_in_flight`` views unlabelled).
 Services ~/save_map and ~/reset (std_srvs/Trigger); the map is saved every
 ``save_period_s`` and at shutdown when ``map_path`` is set, and loaded at start.
+Poses come from the pose topic, /tf or RGB-D odometry (``pose_source``, the
+engine's :class:`PoseStage`); tf and odometry poses are published on the pose
+topic, and a new odometry map segment restarts the field.
 """
 
 from __future__ import annotations
 
 import os
 
+import cv2
 import torch
 
 from ..core import msgconv
@@ -50,6 +54,7 @@ def make_node():
             self.cfg = declare_config(self)
             if self.cfg.mapper.num_threads > 0:  # this process is the mapper's
                 torch.set_num_threads(self.cfg.mapper.num_threads)
+                cv2.setNumThreads(self.cfg.mapper.num_threads)  # the odometry's OpenCV
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
             self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
             self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
@@ -214,6 +219,7 @@ def make_node():
                 return
             stamp = header_ns(msg)
             self._offer("embedding", stamp, EmbeddingRecord(stamp, arr, self.spec))
+            self._offer_poses(self.poses.offer_embedding(stamp, self.stage.intrinsics))
 
         def on_labels(self, msg) -> None:
             self.stage.labelled(header_ns(msg))
@@ -288,7 +294,7 @@ def make_node():
                 except (OSError, RuntimeError, ValueError) as err:
                     self.get_logger().error(f"could not save the map: {err}")
             self.get_logger().info(self.stage.summary() + f", problems "
-                                   f"{dict(self.health.problems)}")
+                                   f"{dict(self.health.problems)}; {self.poses.summary()}")
 
     return MapperNode()
 

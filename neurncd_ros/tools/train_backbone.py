@@ -128,6 +128,8 @@ def command_line(args: argparse.Namespace) -> str:
     unused = _SYNTH_ONLY if getattr(args, "data", None) else _DATA_ONLY
     if getattr(args, "arch", "default") != "esanet":
         unused = unused + _ESANET_ONLY + ("arch",)
+    else:
+        unused = unused + ("widths",)   # ESANet's widths are fixed
     for key, value in sorted(vars(args).items()):
         if key in ("func", "command", "config", "set") or key in unused or value is None:
             continue

@@ -233,7 +233,12 @@ def load_weights(path: str, device: str = "cpu") -> SmallRGBDNet:
     """Rebuild the net from a file written by :func:`save_weights` (eval mode, fp32)."""
     blob = torch.load(path, map_location=device, weights_only=True)
     if not isinstance(blob, dict) or blob.get("arch") != "SmallRGBDNet":
-        raise ValueError(f"{path}: not a SmallRGBDNet weight file (no 'arch' = 'SmallRGBDNet')")
+        hint = ""
+        if isinstance(blob, dict) and ("state_dict" in blob or "model" in blob):
+            hint = "; an ESANet checkpoint (train-backbone --arch esanet) loads with " \
+                   "backbone.kind esanet"
+        raise ValueError(f"{path}: not a SmallRGBDNet weight file (no 'arch' = "
+                         f"'SmallRGBDNet'){hint}")
     if blob.get("arch_version") != ARCH_VERSION:
         raise ValueError(f"{path}: weights are for layout version {blob.get('arch_version')}, "
                          f"this code builds version {ARCH_VERSION}; retrain the backbone")

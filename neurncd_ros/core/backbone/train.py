@@ -277,6 +277,8 @@ def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, rgb: torch.Te
 
 def _init_from(model: small.SmallRGBDNet, init: str) -> dict:
     """Load ``init``'s weights into ``model``; returns what the record keeps of it."""
+    if not Path(init).is_file():
+        raise ValueError(f"--init {init}: no such weight file")
     prev_model = small.load_weights(init)
     if prev_model.widths != model.widths:
         raise ValueError(f"--init {init} has widths {prev_model.widths}, "

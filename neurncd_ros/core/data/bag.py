@@ -151,7 +151,11 @@ def _latched_qos() -> list:
 
 
 class _BagWriter:
-    """rosbags Writer with connections made on first use."""
+    """rosbags Writer with connections made on first use.
+
+    A write that fails (a frame the source cannot read, a bad message) removes
+    the bag folder it started, so a failed conversion leaves nothing behind
+    that the next attempt would refuse to overwrite."""
 
     def __init__(self, path: str | Path, storage: str, overwrite: bool) -> None:
         from rosbags.rosbag2 import Writer
@@ -159,7 +163,8 @@ class _BagWriter:
         plugin = _storage_plugin(storage)
         if self.path.exists():
             if not overwrite:
-                raise BagError(f"{self.path}: exists already; remove it or pass overwrite=True")
+                raise BagError(f"{self.path}: exists already; remove it, or overwrite it "
+                               "(overwrite=True; neurncd convert --overwrite)")
             if not (self.path / "metadata.yaml").is_file():
                 raise BagError(f"{self.path}: exists and is not a bag folder; not overwriting")
             shutil.rmtree(self.path)
@@ -175,7 +180,11 @@ class _BagWriter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        self.writer.__exit__(*exc)
+        try:
+            self.writer.__exit__(*exc)
+        finally:
+            if exc[0] is not None:
+                shutil.rmtree(self.path, ignore_errors=True)
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
         conn = self.conns.get(topic)

@@ -254,7 +254,8 @@ def is_bag(path: str | Path) -> bool:
 def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str = "mcap",
             tf_parent: str | None = None, tf_child: str | None = None,
             to: str = "bag", progress: bool = False, poses: str = "source",
-            odometry: Any = None, report: dict | None = None, **opts: Any) -> int:
+            odometry: Any = None, report: dict | None = None, overwrite: bool = False,
+            **opts: Any) -> int:
     """Convert a dataset folder or a bag into a bag (or a Replica / TUM folder).
 
     A bag source may carry its pose on /tf (give ``tf_parent``/``tf_child``).
@@ -263,7 +264,8 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
     frames where tracking is lost are left out and counted in ``report``
     (a dict that receives ``frames_in``, ``lost``, ``segments``, ``relocalised``).
     ``opts`` go to :func:`read_folder` (folder sources) or the bag writer's
-    encoding choices (``depth_encoding``, ``color_encoding``). Returns frames written.
+    encoding choices (``depth_encoding``, ``color_encoding``); ``overwrite`` replaces
+    an existing output bag. Returns frames written.
     """
     from . import bag as bagio
 
@@ -289,7 +291,8 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
         from ..odometry import with_odometry
         frames = with_odometry(frames, odometry, results)
     if to == "bag":
-        n = bagio.write_bag(out, frames, storage=storage, progress=progress, **writer_opts)
+        n = bagio.write_bag(out, frames, storage=storage, progress=progress,
+                            overwrite=overwrite, **writer_opts)
     elif to == "replica":
         n = write_replica(out, frames)
     else:

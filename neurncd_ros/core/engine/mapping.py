@@ -100,6 +100,17 @@ class MapperNodeConfig:
     pose_auto_wait_s: float = param(3.0, "pose_source auto: seconds of frames without a pose "
                                     "topic or /tf before odometry is chosen", lo=0.0,
                                     hi=3600.0, unit="s")
+    odometry_frames: str = param("embedded", "pose_source odometry: which frames are tracked: "
+                                 "embedded = those the embedding node embedded (the only ones "
+                                 "the mapper uses; a third of a 30 Hz camera at "
+                                 "embedding_node.max_rate_hz 10, so a third of the CPU), all = "
+                                 "every colour+depth pair (shorter steps, more CPU)",
+                                 choices=("embedded", "all"))
+    odometry_gap_s: float = param(0.1, "odometry_frames embedded: between two embedded frames "
+                                  "further apart, frames are tracked too, one at least this "
+                                  "often (stamp time), so steps stay short when the embedding "
+                                  "node falls behind (0 = embedded frames only)", lo=0.0,
+                                  hi=60.0, unit="s")
     tf_max_gap_ms: float = param(100.0, "pose_source tf: interpolate each /tf edge between "
                                  "samples at most this far apart", lo=0.0, hi=10000.0,
                                  unit="ms")

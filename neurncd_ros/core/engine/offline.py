@@ -207,6 +207,7 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         "keyframes": len(engine.mapping.keyframe_stamps),
         "iterations": mapper.iterations if mapper is not None else 0,
         "backend": cfg.mapper.backend, "backbone": cfg.backbone.kind,
+        "backbone_checkpoint": cfg.backbone.checkpoint or "shipped default",
         "seconds": round(time.perf_counter() - t_start, 2),
         **{f"seconds_{k}": round(v, 2) for k, v in engine.seconds.items()},
         "classes": {str(k): v for k, v in (engine.discovery.discoverer.classes().items()

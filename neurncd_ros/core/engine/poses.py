@@ -7,12 +7,20 @@
   ``topics.camera_frame`` at each frame's stamp (edges interpolated within
   ``tf_max_gap_ms``);
 - ``odometry``: RGB-D odometry on the frames themselves (:mod:`..odometry`),
-  every colour+depth pair tracked frame to keyframe; losses are reported with
-  their reason and the frames they cover get no pose (they are skipped, never
-  placed wrongly);
+  tracked frame to keyframe. With ``odometry_frames`` "embedded" (default) a
+  colour+depth pair is held until its embedding arrives and only then tracked,
+  so the odometry runs on the frames the mapper uses (the embedding stage
+  embeds at most ``embedding_node.max_rate_hz``), not on every camera frame;
+  between two embedded frames further apart than ``odometry_gap_s`` (a busy
+  embedding node) held frames are tracked too, so steps stay short. "all"
+  tracks every pair. Losses are reported with their reason and the
+  frames they cover get no pose (they are skipped, never placed wrongly); a new
+  map segment is a warning too (the node then restarts the field);
 - ``auto``: the first of these that shows up: a pose topic publisher, then a
   /tf tree linking the two frames, else odometry once ``auto_wait_s`` of frames
-  passed without either. The choice is logged once and kept.
+  passed without either. The choice is logged once and kept. Frames are
+  tracked while the choice is open; when it falls on odometry their poses are
+  handed on (the mapper pairs those whose embeddings still wait).
 
 With tf or odometry the node publishes the poses on ``topics.pose`` for the
 other nodes (and the user); with ``topic`` it publishes nothing.
@@ -20,6 +28,7 @@ other nodes (and the user); with ``topic`` it publishes nothing.
 
 from __future__ import annotations
 
+import collections
 import time
 from typing import Any, Callable
 
@@ -57,6 +66,15 @@ class PoseStage:
                               node_cfg.sync_horizon_s, capacity=max(4, node_cfg.queue_size),
                               clock=clock, on_anomaly=sync_reporter(health))
         self.odometry = None
+        self.odometry_seconds = 0.0   # wall time spent tracking
+        # colour+depth pairs (stamp, rgb, depth, intrinsics) waiting for their embedding,
+        # at most sync_horizon_s of them (odometry_frames "embedded"), and the embeddings'
+        # stamps whose pair has not come yet
+        self._held: collections.deque = collections.deque(
+            maxlen=8 * max(4, node_cfg.queue_size))
+        self._wanted: collections.deque = collections.deque(maxlen=max(4, node_cfg.queue_size))
+        self._last_tracked: int | None = None
+        self._early: list[tuple[int, np.ndarray]] = []   # tracked while auto was undecided
         self._first_frame: float | None = None
         self._topic_seen = False
         if self.mode is not None:
@@ -66,6 +84,16 @@ class PoseStage:
     def publishes(self) -> bool:
         """The node should publish the poses it gets from here on ``topics.pose``."""
         return self.mode in ("tf", "odometry")
+
+    def summary(self) -> str:
+        """One line for the node's exit log: the source and, with odometry, what it did."""
+        odo = self.odometry
+        if odo is None or self.mode != "odometry":
+            return f"pose source {self.mode or 'undecided'}"
+        ms = 1000 * self.odometry_seconds / max(odo.frames, 1)
+        return (f"pose source odometry: {odo.frames} frames tracked ({ms:.1f} ms per frame), "
+                + ", ".join(f"{k} {v}" for k, v in odo.counts.items())
+                + f", segments {odo.segment + 1}")
 
     # ------------------------------------------------------------ choosing
     def _decide(self) -> str | None:
@@ -81,6 +109,10 @@ class PoseStage:
         else:
             return None
         self.mode = mode
+        if mode != "odometry":
+            self._held.clear()
+            self._wanted.clear()
+            self._early.clear()
         self.health.gauge("pose_source", mode)
         self.health.problem("pose_source", f"pose source: {mode} (pose_source auto)", level=0)
         return mode
@@ -125,9 +157,64 @@ class PoseStage:
         # odometry, or still undecided: track anyway, so a late decision loses nothing
         out = []
         for stamp, g in self.sync.add(stream, stamp_ns, image):
-            pose = self._track(stamp, g["color"], g["depth"], intrinsics)
-            if pose is not None and self._decide() == "odometry":
-                out.append((stamp, pose))
+            if self.cfg.odometry_frames == "all":
+                out += self._tracked(stamp, g["color"], g["depth"], intrinsics)
+            else:
+                self._held.append((stamp, g["color"], g["depth"], intrinsics))
+                horizon = stamp - int(self.cfg.sync_horizon_s * 1e9)
+                while self._held[0][0] < horizon:   # as long as the mapper waits for it
+                    self._held.popleft()
+                out += self._match(intrinsics)
+        return out
+
+    def offer_embedding(self, stamp_ns: int, intrinsics: Intrinsics | None = None
+                        ) -> list[tuple[int, np.ndarray]]:
+        """An embedding's stamp: with ``odometry_frames`` "embedded", its frame is tracked
+        as soon as its colour and depth are there (a busy node may take the embedding
+        first); held pairs older than it are dropped, tracked only to keep steps short
+        (``odometry_gap_s``). ``intrinsics``: the camera's now, for pairs held before the
+        camera info arrived. The poses this gives."""
+        if self.cfg.odometry_frames != "embedded" or self._decide() in ("topic", "tf"):
+            return []
+        self._wanted.append(int(stamp_ns))
+        return self._match(intrinsics)
+
+    def _match(self, intrinsics: Intrinsics | None = None) -> list[tuple[int, np.ndarray]]:
+        """Track the held pairs that embeddings asked for, in stamp order, and between
+        them one at least every ``odometry_gap_s`` (short steps when embeddings are far
+        apart)."""
+        out = []
+        tol = int(self.cfg.sync_tolerance_ms * 1e6)
+        gap = int(self.cfg.odometry_gap_s * 1e9)
+        while self._wanted and self._held:
+            want, (stamp, rgb, depth, intr) = self._wanted[0], self._held[0]
+            if stamp < want - tol:      # no embedding asked for this frame
+                self._held.popleft()
+                if gap and (self._last_tracked is None or stamp - self._last_tracked >= gap):
+                    out += self._tracked(stamp, rgb, depth, intr or intrinsics)
+            elif stamp > want + tol:    # the frame asked for will not come
+                self._wanted.popleft()
+                self.health.problem("odometry_no_frame", f"frame {want} not tracked: its "
+                                    "colour and depth did not arrive (dropped, or too late)")
+            else:
+                self._wanted.popleft()
+                self._held.popleft()
+                out += self._tracked(stamp, rgb, depth, intr or intrinsics)
+        return out
+
+    def _tracked(self, stamp: int, rgb: np.ndarray, depth: np.ndarray,
+                 intrinsics: Intrinsics | None) -> list[tuple[int, np.ndarray]]:
+        pose = self._track(stamp, rgb, depth, intrinsics)
+        self._last_tracked = stamp
+        if pose is None:
+            return []
+        mode = self._decide()
+        if mode is None:
+            self._early = (self._early + [(stamp, pose)])[-self._wanted.maxlen:]
+            return []
+        if mode != "odometry":
+            return []
+        out, self._early = self._early + [(stamp, pose)], []
         return out
 
     # ------------------------------------------------------------ sources
@@ -157,14 +244,16 @@ class PoseStage:
         if self.odometry is None:
             from ..odometry import RGBDOdometry
             self.odometry = RGBDOdometry(self.odometry_cfg)
+        t0 = time.perf_counter()
         try:
             result = self.odometry.track(stamp, rgb, depth, intrinsics)
         except ValueError as err:
             self.health.problem("odometry_input", f"frame {stamp} not tracked: {err}")
             return None
+        self.odometry_seconds += time.perf_counter() - t0
         self.health.count(f"odometry_{result.status}")
         if result.status != "ok":
-            level = 1 if result.pose is None else 0
+            level = 0 if result.status == "relocalised" else 1
             self.health.problem(f"tracking_{result.status}",
                                 f"odometry {result.status} at frame {stamp}: {result.reason}",
                                 level=level)
