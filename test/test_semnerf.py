@@ -16,6 +16,8 @@ from neurncd_ros.core.field import losses
 from neurncd_ros.core.params import ConfigError
 from neurncd_ros.synth import seeds
 
+torch.set_num_threads(1)  # this process owns its threads (as the other test modules)
+
 ITERATIONS = 150  # enough for the field to fit its labels (a fifth of a second per step)
 
 
