@@ -76,6 +76,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "discovery_node": ("neurncd_ros.core.engine.discovery", "DiscoveryNodeConfig"),
     "replay": (__name__, "ReplayConfig"),
     "run": ("neurncd_ros.core.engine.offline", "RunConfig"),
+    "semnerf": ("neurncd_ros.core.eval.semnerf", "SemanticNerfConfig"),
 }
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "neurncd.yaml"

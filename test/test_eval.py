@@ -38,7 +38,8 @@ def test_eval_writes_the_tables_and_every_row(evaluated):
     res = json.loads((evaluated / "eval.json").read_text())
     assert len(res["bags"]) == 2
     agg = res["aggregate"]
-    assert set(agg) == {"full", "gs_pssn_ep_mcl", "gs", "pssn", "explicit"}
+    assert set(agg) == {"full", "gs_pssn_ep_mcl", "gs", "pssn", "explicit", "semnerf_1pct",
+                        "semnerf_5pct", "semnerf_10pct"}
     for row in agg.values():
         for k in evaluate.FIGURES:
             assert set(row[k]) == {"mean", "std", "n"}
@@ -60,7 +61,33 @@ def test_eval_writes_the_tables_and_every_row(evaluated):
         assert title in md
     header = next(line for line in md.splitlines() if line.startswith("| method | "))
     assert header.count("|") == 1 + 13 + 1 and "*ceiling*" in header
-    assert "±" in md and "Semantic-NeRF" in md
+    assert "±" in md and "| Semantic-NeRF 10% " in md
+    # Label propagation names known classes only; its runs are recorded per bag.
+    assert agg["semnerf_1pct"]["miou_novel"]["mean"] == 0.0
+    run = b["semnerf"]["semnerf_10pct"]
+    assert run["keyframes"] == b["keyframes"] and run["iterations"] == b["iterations"]
+    # Every target of the issue is checked on these figures, with its margin.
+    got = {t["target"]: t for t in res["targets"]}
+    assert len(got) == 4 and all(t["met"] is not None for t in got.values())
+    ex = got["full mIoU all >= explicit map + 10 points"]
+    assert ex["margin"] == pytest.approx(agg["full"]["miou_all"]["mean"]
+                                         - agg["explicit"]["miou_all"]["mean"] - 10.0)
+    assert (ex["met"] is False) == bool(ex["why"])
+    assert "### Issue 12 targets" in md and "10 points" in md
+
+
+def test_targets_say_what_was_not_measured():
+    from neurncd_ros.core.eval import targets
+
+    agg = {"full": {k: {"mean": 50.0} for k in evaluate.FIGURES}}
+    checked = targets.check(agg, [{"iterations": 10, "keyframes": 3}])
+    assert [t["met"] for t in checked] == [None] * 4
+    assert all("not measured (run with --" in x for x in targets.lines(checked))
+    # A shortfall says by how much.
+    agg["explicit"] = {k: {"mean": 45.0} for k in evaluate.FIGURES}
+    ex = targets.check(agg, [{"iterations": 10, "keyframes": 3}])[2]
+    assert ex["met"] is False and ex["margin"] == pytest.approx(-5.0)
+    assert "short by 5.0 points" in targets.lines([ex])[0] and "10 iterations" in ex["why"]
 
 
 def test_report_is_one_self_contained_page(evaluated):
@@ -68,6 +95,7 @@ def test_report_is_one_self_contained_page(evaluated):
     page = (evaluated / "report.html").read_text()
     assert page.count("data:image/png;base64,") >= 4  # grid rows, curve, confusion
     assert "Table 1" in page and "<table>" in page and "src='http" not in page
+    assert "Issue 12 targets" in page and "Semantic-NeRF 1 %" in page
 
 
 def test_bad_input_gives_a_clear_error(bag, tmp_path):

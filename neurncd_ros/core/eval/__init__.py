@@ -17,7 +17,13 @@ Every row is then scored with the one ``discovery.metrics.Evaluator``:
 - ``explicit``: Nakajima et al. 2019 in spirit: the per-frame backbone logits fused
   in a voxel map (running mean per voxel of back-projected points), the fused
   embedding of each frame labelled by the same discovery stage, no field;
-- ``semnerf_*``: Semantic-NeRF label propagation; not implemented (reported as such).
+- ``semnerf_<pct>pct``: Semantic-NeRF label propagation (``semnerf.py``): a separate
+  field per label fraction with a cross-entropy head on the known classes, trained on
+  ground-truth labels at that share of each keyframe's pixels with the same keyframes
+  and iterations as the engine's field; scored by known-class mIoU.
+
+``targets.py`` checks the issue's targets on the measured figures and says where and
+why they fall short (eval.json ``targets``, tables.md, the summary, the report).
 """
 
 from .evaluate import (ROWS, aggregate, evaluate_bag, evaluate_frames, markdown_tables,

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import classes
+from . import targets
 
 
 def _png(img: np.ndarray) -> str:
@@ -80,6 +81,7 @@ def render(eval_dir: str | Path, out: str | Path | None = None, notes: str = "")
         raise FileNotFoundError(f"{d}/eval.json not found: run neurncd eval --out {d} first")
     res = json.loads((d / "eval.json").read_text())
     md = (d / "tables.md").read_text() if (d / "tables.md").is_file() else ""
+    md = md.split("### Issue 12 targets")[0]  # rendered below from eval.json itself
     pics = {}
     if (d / "pictures.npz").is_file():
         with np.load(d / "pictures.npz") as z:
@@ -91,6 +93,10 @@ def render(eval_dir: str | Path, out: str | Path | None = None, notes: str = "")
              "<h1>NeurNCD evaluation</h1>",
              f"<p>{len(res['bags'])} bag(s): " + html.escape(", ".join(
                  b.get("name", "") for b in res["bags"])) + "</p>"]
+    checked = targets.check(res["aggregate"], res["bags"])
+    parts.append("<h2>Issue 12 targets (mIoU points; '10 percent' read as 10 points)</h2>"
+                 "<ul>" + "".join(f"<li>{html.escape(x)}</li>" for x in targets.lines(checked))
+                 + "</ul>")
     if notes:
         parts.append(notes)
     parts.append(_md_to_html(md))

@@ -34,6 +34,35 @@ def embedding_kl(target_logits: torch.Tensor, rendered_logits: torch.Tensor,
     return (w * kl).sum() / w.sum().clamp(min=1e-8)
 
 
+def label_cross_entropy(target: torch.Tensor, rendered_logits: torch.Tensor) -> torch.Tensor:
+    """Semantic-NeRF's L_s: cross-entropy of the rendered logits against labelled rays.
+
+    ``target`` (R, S) is each ray's class distribution (one-hot for a ground-truth
+    label); a ray whose target is all zero carries no label and is left out, so
+    sparse labels need no separate mask. Mean over the labelled rays (0 if none).
+    """
+    labelled = target.sum(dim=-1) > 0
+    if not bool(labelled.any()):
+        return rendered_logits.sum() * 0.0
+    log_q = F.log_softmax(rendered_logits[labelled], dim=-1)
+    return -(target[labelled] * log_q).sum(dim=-1).mean()
+
+
+EMBEDDING_LOSSES = ("kl", "cross_entropy")
+"""What the embedding head is trained with (``mapper.<backend>.embedding_loss``)."""
+
+
+def embedding_term(kind: str, target: torch.Tensor, rendered_logits: torch.Tensor,
+                   confidence_power: float = 0.0) -> torch.Tensor:
+    """The embedding head's loss: ``kl`` (L_e against the backbone's logits, NeurNCD) or
+    ``cross_entropy`` (L_s against sparse labels, Semantic-NeRF label propagation)."""
+    if kind == "kl":
+        return embedding_kl(target, rendered_logits, confidence_power)
+    if kind == "cross_entropy":
+        return label_cross_entropy(target, rendered_logits)
+    raise ValueError(f"embedding_loss must be one of {EMBEDDING_LOSSES}, got {kind!r}")
+
+
 def depth_l1(depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean |rendered - measured| z-depth over rays with a measurement (target > 0)."""
     valid = target > 0

@@ -58,6 +58,11 @@ class FastConfig:
         2.0, "weight each ray's embedding loss by (1 - backbone entropy / log S)^power: where "
         "views disagree the field follows the confident ones (0 = plain mean)",
         lo=0.0, hi=16.0)
+    embedding_loss: str = param(
+        "kl", "what trains the embedding head: 'kl' against the backbone's logits "
+        "(NeurNCD), or 'cross_entropy' against sparse one-hot labels, all-zero rays "
+        "unlabelled (the Semantic-NeRF label-propagation baseline of neurncd eval)",
+        choices=losses.EMBEDDING_LOSSES)
     lambda_depth: float = param(0.5, "weight of the L1 depth loss", lo=0.0, hi=100.0)
     lambda_free: float = param(1.0, "weight of the free-space loss", lo=0.0, hi=100.0)
     lr_grid: float = param(2e-2, "Adam learning rate of the tri-planes", lo=0.0, hi=1.0)
@@ -93,7 +98,8 @@ class FastModel(FieldModel):
         out = render_samples(self.field, batch.origins, batch.dirs, t)
         c = self.cfg
         lp = losses.photometric(out["rgb"], batch.rgb)
-        le = losses.embedding_kl(batch.embedding, out["embedding"], c.embedding_confidence_power)
+        le = losses.embedding_term(c.embedding_loss, batch.embedding, out["embedding"],
+                                   c.embedding_confidence_power)
         ld = losses.depth_l1(out["depth"], batch.depth)
         lf = losses.free_space(out["weights"], t, batch.depth, c.surface_band)
         total = lp + self.lambda_embedding * le + c.lambda_depth * ld + c.lambda_free * lf

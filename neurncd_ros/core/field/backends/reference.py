@@ -29,6 +29,11 @@ class ReferenceConfig:
     fine_samples: int = param(128, "importance samples per ray added for the fine MLP",
                               lo=0, hi=1024)
     lr: float = param(5e-4, "Adam learning rate of both MLPs", lo=0.0, hi=1.0)
+    embedding_loss: str = param(
+        "kl", "what trains the embedding heads: 'kl' against the backbone's logits (the "
+        "paper), or 'cross_entropy' against sparse one-hot labels, all-zero rays unlabelled "
+        "(Semantic-NeRF label propagation, neurncd eval --baselines)",
+        choices=losses.EMBEDDING_LOSSES)
 
 
 @register("reference", ReferenceConfig)
@@ -59,8 +64,9 @@ class ReferenceModel(FieldModel):
         coarse, fine = self._both(batch.origins, batch.dirs, near, far, generator)
         lp = (losses.photometric(coarse["rgb"], batch.rgb)
               + losses.photometric(fine["rgb"], batch.rgb))
-        le = (losses.embedding_kl(batch.embedding, coarse["embedding"])
-              + losses.embedding_kl(batch.embedding, fine["embedding"]))
+        kind = self.cfg.embedding_loss
+        le = (losses.embedding_term(kind, batch.embedding, coarse["embedding"])
+              + losses.embedding_term(kind, batch.embedding, fine["embedding"]))
         return {"total": lp + self.lambda_embedding * le, "photometric": lp, "embedding": le,
                 "fine_rgb_mse": ((fine["rgb"] - batch.rgb) ** 2).mean().detach()}
 
