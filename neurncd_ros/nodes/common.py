@@ -173,6 +173,7 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
 
     rclpy.init(args=[name, *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    executor = None
     code = 0
     try:
         node = factory()
@@ -193,6 +194,10 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None:
+            # Before the context goes: an executor left to the garbage collector destroys its
+            # SIGINT guard condition after rclpy.shutdown, and that raises at exit.
+            executor.shutdown(timeout_sec=5.0)
         if node is not None:
             close = getattr(node, "close", None)
             if close:
