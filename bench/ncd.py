@@ -71,7 +71,7 @@ from neurncd_ros.core.camera import Intrinsics  # noqa: E402
 from neurncd_ros import synth
 from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
-from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402
+from neurncd_ros.core.discovery.metrics import Evaluator, IdStability  # noqa: E402
 from neurncd_ros.core.params import to_dict  # noqa: E402
 
 from _common import commit  # noqa: E402  (bench/ is on sys.path)
@@ -92,16 +92,22 @@ def _key(cfg: config.Config, seed: int, frames: int) -> str:
     return h.hexdigest()[:12]
 
 
+ROWS = ("rgb", "depth", "K", "embedding", "entropy", "logits", "semantic", "instance",
+        "stamp", "keyframe", "field_share", "iterations")
+
+
 def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
     """Labelled frames of one scene: depth, K, rendered embedding/entropy, backbone logits,
-    semantic, rgb (arrays stacked over frames; embeddings float16)."""
+    semantic, instance, rgb, the view's field share and the field's iterations (arrays
+    stacked over frames; embeddings float16). A cache file without one of these arrays
+    (written before it was kept) is rendered again."""
     path = CACHE / f"ncd_s{seed}_n{frames}_{_key(cfg, seed, frames)}.npz"
     if path.is_file():
         with np.load(path) as z:
-            return {k: z[k] for k in z.files}
+            if set(ROWS) <= set(z.files):
+                return {k: z[k] for k in z.files}
     engine = OfflineEngine(cfg, load_backbone(cfg.backbone))
-    rows: dict[str, list] = {k: [] for k in ("rgb", "depth", "K", "embedding", "entropy",
-                                             "logits", "semantic", "stamp", "keyframe")}
+    rows: dict[str, list] = {k: [] for k in ROWS}
     stream = synth.generate(seed, frames, cfg.synth)
     for o in engine.run(stream, total=frames, progress=False):
         f, v = o.frame, o.view
@@ -113,6 +119,9 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
         rows["entropy"].append(resize_to(v.entropy, h, w))
         rows["logits"].append(resize_to(o.embedding.logits, h, w).astype(np.float16))
         rows["semantic"].append(f.semantic)
+        rows["instance"].append(f.instance)
+        rows["field_share"].append(v.field_share)
+        rows["iterations"].append(v.iterations)
         rows["stamp"].append(f.stamp_ns)
         rows["keyframe"].append(v.keyframe)
     data = {k: np.stack(v) for k, v in rows.items()}
@@ -132,8 +141,14 @@ def _scene_job(job: tuple) -> int:
 
 def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[dict]:
     """:func:`scene` for several seeds; missing ones rendered in ``workers`` processes."""
-    todo = [s for s in scene_seeds
-            if not (CACHE / f"ncd_s{s}_n{frames}_{_key(cfg, s, frames)}.npz").is_file()]
+    def cached(seed: int) -> bool:
+        path = CACHE / f"ncd_s{seed}_n{frames}_{_key(cfg, seed, frames)}.npz"
+        if not path.is_file():
+            return False
+        with np.load(path) as z:
+            return set(ROWS) <= set(z.files)
+
+    todo = [s for s in scene_seeds if not cached(s)]
     if workers > 1 and len(todo) > 1:
         import multiprocessing as mp
         with mp.get_context("fork").Pool(min(workers, len(todo))) as pool:
@@ -148,7 +163,10 @@ NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
          'so the backbone_logits row gets them too; compare neurncd with backbone_logits for what '
          'the Embedding-NeRF adds, and no_colour_no_split / backbone_logits_no_colour_no_split for'
          ' the discovery before them. Defaults chosen on tuning seeds 500-501 only (not the full '
-         '--tune search). Novel id stability is not measured here.')
+         '--tune search). novel_id_stability: per novel object (GT instance of a novel class), the '
+         'share of its pixels over the scene\'s labelled frames carrying its most common '
+         'predicted id, mean over objects then over scenes (a fraction); _found: over its '
+         'novel-labelled pixels only.')
 
 METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
 
@@ -162,7 +180,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
     of a few frames for the picture.
     """
-    ev = Evaluator()
+    ev, stable = Evaluator(), IdStability()
     c2i = classes.CHANNEL_TO_ID
     times = []
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
@@ -183,12 +201,14 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
                             sc["rgb"][i])
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
+        stable.update(lab, sc["semantic"][i], sc["instance"][i])
         if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
             keep.append((sc["rgb"][i], sc["semantic"][i],
                          c2i[logits.argmax(-1)].astype(np.uint16), lab, ent))
     r = ev.result()
     out = {k: r[k] for k in METRICS}
     out["novel_classes_matched"] = len(r["novel_matching"])
+    out.update(stable.result())
     out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
     return out, times
 
@@ -221,6 +241,10 @@ def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
     for k in ("miou_all", "miou_known", "miou_novel"):
         out[f"std_{k}"] = float(np.std([r[k] for r, _ in per]))
     out["novel_classes_matched"] = int(sum(r["novel_classes_matched"] for r, _ in per))
+    for k in ("novel_id_stability", "novel_id_stability_found"):  # mean over scenes
+        v = [r[k] for r, _ in per if not np.isnan(r[k])]
+        out[k] = float(np.mean(v)) if v else float("nan")
+    out["novel_objects"] = int(sum(r["novel_objects"] for r, _ in per))
     out["ms_per_frame"] = 1000 * statistics.median([t for _, ts in per for t in ts])
     names = sorted({c for r, _ in per for c in r["iou"]})
     out["iou"] = {c: float(np.mean([r["iou"][c] for r, _ in per if c in r["iou"]]))
@@ -362,13 +386,14 @@ def main() -> None:
     (RESULTS / "ncd.json").write_text(json.dumps(res, indent=1, sort_keys=True))
     picture(keep, RESULTS / "ncd.png")
 
-    cols = METRICS + ("novel_classes_matched",)
+    cols = METRICS + ("novel_classes_matched", "novel_id_stability")
     print(f"\n{res['labelled_frames']} labelled frames of test seeds {res['test_seeds']} "
           f"({frames} frames each), percent")
     print(f"{'row':34s} " + " ".join(f"{c[:13]:>13s}" for c in cols))
     for name in variants:
         print(f"{name:34s} " + " ".join(
-            f"{res[f'{name}_{c}']:13.1f}" if isinstance(res[f"{name}_{c}"], float)
+            f"{res[f'{name}_{c}']:13.3f}" if c == "novel_id_stability"
+            else f"{res[f'{name}_{c}']:13.1f}" if isinstance(res[f"{name}_{c}"], float)
             else f"{res[f'{name}_{c}']:13d}" for c in cols))
     print(f"wrote {RESULTS / 'ncd.json'} and ncd.png")
 
