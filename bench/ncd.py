@@ -299,6 +299,53 @@ def tune(scenes: list[dict], base: config.Config, rounds: int = 2, workers: int 
     return {"best": best, "miou_all": score}, rows
 
 
+def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
+    """Where the full pipeline differs from per-frame logits, in numbers (tuning scenes only).
+
+    Per scene and split by keyframe / other view: the share of pixels the field
+    rendered (``field_share``), the field's iterations at the last view, how often
+    the rendered embedding's argmax agrees with the backbone's, the argmax accuracy
+    of each on known-class pixels, and the mean normalised entropy of each on
+    known and on novel pixels; then both discovery rows with per-class IoU.
+    """
+    c2i = classes.CHANNEL_TO_ID
+    known, novel = np.array(classes.KNOWN_IDS), np.array(classes.NOVEL_IDS)
+    per = []
+    for sc in scenes:
+        rend = sc["embedding"].astype(np.float32)
+        lg = sc["logits"].astype(np.float32)
+        gt = sc["semantic"]
+        r_ids, b_ids = c2i[rend.argmax(-1)], c2i[lg.argmax(-1)]
+        S = lg.shape[-1]
+        ent_r = sc["entropy"] / np.log(S)
+        ent_b = np.stack([entropy(x) for x in lg]) / np.log(S)
+        row = {"frames": int(len(gt)), "keyframes": int(sc["keyframe"].sum()),
+               "iterations_last_view": int(sc["iterations"][-1])}
+        for part, sel in (("keyframe", sc["keyframe"]), ("other", ~sc["keyframe"])):
+            if not sel.any():
+                continue
+            g = gt[sel]
+            kn, nv = np.isin(g, known), np.isin(g, novel)
+            row[part] = {
+                "views": int(sel.sum()),
+                "field_share": float(sc["field_share"][sel].mean()),
+                "agreement": float((r_ids[sel] == b_ids[sel])[g > 0].mean()),
+                "known_acc_rendered": float((r_ids[sel] == g)[kn].mean()),
+                "known_acc_backbone": float((b_ids[sel] == g)[kn].mean()),
+                "entropy_known_rendered": float(ent_r[sel][kn].mean()),
+                "entropy_known_backbone": float(ent_b[sel][kn].mean()),
+                "entropy_novel_rendered": float(ent_r[sel][nv].mean()) if nv.any() else None,
+                "entropy_novel_backbone": float(ent_b[sel][nv].mean()) if nv.any() else None,
+            }
+        per.append(row)
+    out = {"per_scene": per}
+    for name, source in (("rendered", "rendered"), ("logits", "logits")):
+        r = discover(scenes, cfg, source, workers=workers)
+        out[name] = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel",
+                                       "novel_id_stability", "iou")}
+    return out
+
+
 def picture(rows: list, path: Path) -> None:
     tiles = []
     for rgb, gt, bb_ids, lab, ent in rows:
@@ -314,6 +361,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 + 2 short scenes (smoke)")
     ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="only the diagnosis on the tuning scenes (bench/results/"
+                         "ncd_diagnosis.json): field share, agreement, entropy, per-class IoU")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--test-scenes", type=int, default=8)
     ap.add_argument("--tune-scenes", type=int, default=4)
@@ -332,6 +382,18 @@ def main() -> None:
                               (s.split("=", 1) for s in args.set)})
     res: dict = {"frames_per_scene": frames, "quick": bool(args.quick),
                  "test_seeds": list(seeds.TEST[:n_test])}
+
+    if args.diagnose:
+        tune_scenes = prepare(base, seeds.TUNE[:n_tune], frames, args.workers)
+        diag = {"tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
+                "set": args.set, **diagnose(tune_scenes, base, args.workers),
+                "commit": commit()}
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        (RESULTS / "ncd_diagnosis.json").write_text(json.dumps(diag, indent=1))
+        print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
+        for i, row in enumerate(diag["per_scene"]):
+            print(diag["tune_seeds"][i], json.dumps(row))
+        return
 
     t0 = time.perf_counter()
     wanted = list(seeds.TEST[:n_test]) + (list(seeds.TUNE[:n_tune]) if args.tune else [])

@@ -69,8 +69,10 @@ class MapperNodeConfig:
     stale_after_s: float = param(1.0, "a non-keyframe frame not rendered within this of its "
                                  "arrival is dropped", lo=0.01, hi=600.0, unit="s")
     fallback: str = param("backbone", "where the field has not learnt a point yet: blend in "
-                          "the frame's backbone embedding by coverage ('backbone'), or render "
-                          "the field everywhere ('none')", choices=("backbone", "none"))
+                          "the frame's backbone embedding by coverage ('backbone'), the mean "
+                          "of it and the stored backbone embeddings of the keyframes that see "
+                          "the point ('keyframes'), or render the field everywhere ('none')",
+                          choices=("backbone", "keyframes", "none"))
     mature_iterations: int = param(1000, "training iterations after which a keyframe's "
                                    "points are rendered from the field alone (the fast field "
                                    "matches the backbone after about as many, "
@@ -132,6 +134,20 @@ def resize_to(arr: np.ndarray, height: int, width: int,
     return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
 
 
+def _seen(points: np.ndarray, kf, tolerance: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which world points a keyframe sees (in its image, in front, its measured depth
+    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
+    u, v, z = project(points, kf.intrinsics, kf.pose)
+    ui = np.floor(u + 0.5).astype(np.int64)
+    vi = np.floor(v + 0.5).astype(np.int64)
+    h, w = kf.depth.shape
+    ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    zk = np.zeros(len(points), np.float32)
+    zk[ok] = kf.depth[vi[ok], ui[ok]]
+    return ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z), ui, vi
+
+
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
              tolerance: float) -> np.ndarray:
     """Per point, the highest maturity among the keyframes that see it.
@@ -144,16 +160,35 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
     for kf, m in zip(keyframes, maturity):
         if m <= 0:
             continue
-        u, v, z = project(points, kf.intrinsics, kf.pose)
-        ui = np.floor(u + 0.5).astype(np.int64)
-        vi = np.floor(v + 0.5).astype(np.int64)
-        h, w = kf.depth.shape
-        ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        zk = np.zeros(len(points), np.float32)
-        zk[ok] = kf.depth[vi[ok], ui[ok]]
-        seen = ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
+        seen, _, _ = _seen(points, kf, tolerance)
         np.maximum(cov, m * seen, out=cov)
     return cov
+
+
+def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
+                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
+    backbone embeddings of the keyframes that see it (the visibility test of
+    :func:`coverage`), and how many views were averaged (N,).
+
+    This is the multi-view evidence the field is trained on, read directly: until
+    the field has learnt a point, the view's embedding there is the mean over the
+    views of it rather than the one frame's (a per-frame confusion, e.g. a picture
+    called wall from one angle, is outvoted by the others).
+    """
+    acc = own.astype(np.float32, copy=True)
+    n = np.ones(len(points), np.float32)
+    for kf in keyframes:
+        seen, ui, vi = _seen(points, kf, tolerance)
+        if not seen.any():
+            continue
+        h, w = kf.depth.shape
+        eh, ew = kf.embedding.shape[:2]
+        ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
+        ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
+        acc[seen] += kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
+        n[seen] += 1.0
+    return acc / n[:, None], n
 
 
 class MapperStage:
@@ -349,28 +384,46 @@ class MapperStage:
             return len(self._keyframe_jobs) + (self._latest is not None) + len(self._in_flight)
 
     # ------------------------------------------------------------ rendering
+    def _nearest_keyframes(self, frame: Frame) -> list:
+        """The ``coverage_keyframes`` stored keyframes nearest the frame's pose (position and
+        view angle), the frame itself left out."""
+        kfs = [k for k in self.mapper.buffer.keyframes() if k.stamp_ns != frame.stamp_ns]
+        if not kfs:
+            return []
+        poses = np.stack([k.pose for k in kfs])
+        gap = np.linalg.norm(poses[:, :3, 3] - frame.pose[:3, 3], axis=1)
+        gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
+        return [kfs[i] for i in np.argsort(gap, kind="stable")[: self.cfg.coverage_keyframes]]
+
     def field_weight(self, frame: Frame, height: int, width: int) -> np.ndarray:
         """(height, width) weight of the field against the backbone (see module doc)."""
-        mapper = self.mapper
-        kfs = [k for k in mapper.buffer.keyframes() if k.stamp_ns != frame.stamp_ns]
-        if not kfs:
-            return np.zeros((height, width), np.float32)
+        kfs = self._nearest_keyframes(frame)
         maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
                              for k in kfs])
         if not np.any(maturity > 0):
             return np.zeros((height, width), np.float32)
-        poses = np.stack([k.pose for k in kfs])
-        gap = np.linalg.norm(poses[:, :3, 3] - frame.pose[:3, 3], axis=1)
-        gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
-        order = np.argsort(gap)[: self.cfg.coverage_keyframes]
         intr = frame.intrinsics.scaled(width, height)
         depth = resize_to(frame.depth, height, width, cv2.INTER_NEAREST)
         pts, mask = backproject(depth, intr, frame.pose)
-        cov = coverage(pts, [kfs[i] for i in order], maturity[order],
-                       self.cfg.coverage_depth_tolerance)
+        cov = coverage(pts, kfs, maturity, self.cfg.coverage_depth_tolerance)
         w = np.clip(cov / self.cfg.full_coverage, 0.0, 1.0).astype(np.float32)
         out = np.full((height, width), float(w.mean()) if w.size else 0.0, np.float32)
         out[mask] = w
+        return out
+
+    def keyframe_fill(self, frame: Frame, backbone: np.ndarray) -> np.ndarray:
+        """The frame's (h, w, C) backbone embedding averaged, point by point, with the
+        stored embeddings of the nearest keyframes that see it (:func:`fuse_keyframes`);
+        pixels without depth keep the frame's own."""
+        h, w = backbone.shape[:2]
+        kfs = self._nearest_keyframes(frame)
+        if not kfs:
+            return backbone
+        depth = resize_to(frame.depth, h, w, cv2.INTER_NEAREST)
+        pts, mask = backproject(depth, frame.intrinsics.scaled(w, h), frame.pose)
+        out = backbone.copy()
+        out[mask], _ = fuse_keyframes(pts, backbone[mask], kfs,
+                                      self.cfg.coverage_depth_tolerance)
         return out
 
     def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
@@ -384,8 +437,10 @@ class MapperStage:
         s = self.cfg.render_scale
         h, w = max(1, round(f.intrinsics.height * s)), max(1, round(f.intrinsics.width * s))
         backbone = resize_to(job.embedding.embedding.astype(np.float32), h, w)
-        weight = (self.field_weight(f, h, w) if self.cfg.fallback == "backbone"
+        weight = (self.field_weight(f, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
+        if self.cfg.fallback == "keyframes":
+            backbone = self.keyframe_fill(f, backbone)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
