@@ -28,6 +28,11 @@ the report gives the mean over scenes. Rows of the report (percent):
   into novel ones (``discovery.mode_split`` off);
 - ``no_colour_no_split``: both off (the descriptor and decision before issue 11);
 - ``backbone``: the backbone's argmax alone (knows no novel class);
+- ``fallback_backbone``: the mapper stage blending in the frame's own backbone
+  embedding where the field has not learnt the scene (``mapper_node.fallback``
+  backbone, before issue 11) instead of the keyframe fusion; ``fusion_logits``:
+  the keyframe fusion averaging logits instead of class probabilities (these
+  rows render the scenes again);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -107,10 +112,13 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
             if set(ROWS) <= set(z.files):
                 return {k: z[k] for k in z.files}
     engine = OfflineEngine(cfg, load_backbone(cfg.backbone))
-    rows: dict[str, list] = {k: [] for k in ROWS}
+    rows: dict[str, list] = {k: [] for k in ROWS + ("render_ms",)}
     stream = synth.generate(seed, frames, cfg.synth)
+    rendered = 0.0
     for o in engine.run(stream, total=frames, progress=False):
         f, v = o.frame, o.view
+        rows["render_ms"].append(1000 * (engine.seconds["rendering"] - rendered))
+        rendered = engine.seconds["rendering"]
         h, w = f.depth.shape
         rows["rgb"].append(f.rgb)
         rows["depth"].append(f.depth)
@@ -260,6 +268,18 @@ def with_overrides(base: config.Config, overrides: dict) -> config.Config:
     return config.from_nested(nested)
 
 
+def engine_rows(base: config.Config) -> dict[str, dict]:
+    """Rows that change the engine before discovery (the mapper stage), for which the
+    scenes are rendered again: ``fallback_<x>`` for each fallback other than the shipped
+    one (what the view is where the field has not learnt the scene)."""
+    rows = {f"fallback_{v}": {"mapper_node.fallback": v} for v in ("backbone", "keyframes")
+            if v != base.mapper_node.fallback}
+    other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
+    if base.mapper_node.fallback == "keyframes":
+        rows[f"fusion_{other}"] = {"mapper_node.fusion": other}
+    return rows
+
+
 GRID = {
     "discovery.entropy_threshold": [0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.6],
     "discovery.majority_share": [0.4, 0.5, 0.6, 0.7, 0.8],
@@ -399,6 +419,11 @@ def main() -> None:
     wanted = list(seeds.TEST[:n_test]) + (list(seeds.TUNE[:n_tune]) if args.tune else [])
     prepare(base, wanted, frames, args.workers)
     test = prepare(base, seeds.TEST[:n_test], frames, 1)
+    engine = {}  # rows whose engine (mapper stage) differs: their own renderings
+    for name, overrides in engine_rows(base).items():
+        cfg = with_overrides(base, overrides)
+        prepare(cfg, seeds.TEST[:n_test], frames, args.workers)
+        engine[name] = (cfg, prepare(cfg, seeds.TEST[:n_test], frames, 1))
     res["scene_seconds"] = round(time.perf_counter() - t0, 1)
     res["labelled_frames"] = int(sum(len(s["depth"]) for s in test))
     if args.tune:
@@ -432,8 +457,10 @@ def main() -> None:
                                   "discovery.mode_split": False}), "logits"),
         "backbone": (base, "argmax"),
     }
+    variants.update({name: (cfg, "rendered") for name, (cfg, _) in engine.items()})
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
-        r = discover(test, cfg, source, keep if name == "neurncd" else None,
+        r = discover(engine[name][1] if name in engine else test, cfg, source,
+                     keep if name == "neurncd" else None,
                      workers=1 if name == "neurncd" else args.workers)
         for k, v in r.items():
             if k == "iou":
@@ -441,6 +468,10 @@ def main() -> None:
                     res[f"{name}_iou_{c}"] = x
             else:
                 res[f"{name}_{k}"] = v
+    for name, scs in [("neurncd", test)] + [(n, e[1]) for n, e in engine.items()]:
+        if all("render_ms" in sc for sc in scs):  # the mapper stage's time per view
+            res[f"{name}_view_ms"] = float(np.median(np.concatenate([sc["render_ms"]
+                                                                      for sc in scs])))
     res["notes"] = NOTES
     res["cores"] = os.cpu_count()
     res["commit"] = commit()

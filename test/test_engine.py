@@ -133,7 +133,7 @@ def test_mapper_stage_serves_keyframes_first_then_the_newest_frame(cfg, backbone
 
 
 def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbone, frames):
-    st = _stage(cfg, mature_iterations=20, render_scale=0.5)
+    st = _stage(cfg, mature_iterations=20, render_scale=0.5, fallback="backbone")
     jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
     job = jobs[-1]
     fresh = st.render_view(job)
@@ -175,11 +175,17 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
                                             kf(1.0, 100.0)], tolerance=0.05)
     assert n.tolist() == [3.0, 1.0, 1.0]  # the far and the off-image points: own view only
     assert np.allclose(fused[0], (0.0 + 3.0 + 6.0) / 3) and np.allclose(fused[1:], 0.0)
+    # Probabilities: own softmax (1/2, 1/2), the keyframe's logits (ln 3, 0) -> (3/4, 1/4);
+    # the mean (5/8, 3/8) comes back as log-probabilities.
+    other = kf(2.0, 0.0)
+    other.embedding[..., 0] = np.log(3.0)
+    fused, n = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2)
+    assert n.tolist() == [2.0] and np.allclose(fused, np.log([[5 / 8, 3 / 8]]), atol=1e-3)
 
 
 def test_keyframe_fallback_fuses_the_stored_views_before_the_field_has_learnt(cfg, backbone,
                                                                               frames):
-    st = _stage(cfg, fallback="keyframes", render_scale=0.5)
+    st = _stage(cfg, fallback="keyframes", fusion="logits", render_scale=0.5)
     jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
     job = jobs[-1]
     view = st.render_view(job)

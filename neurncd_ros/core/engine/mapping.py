@@ -20,6 +20,16 @@ iterations since admission / ``mature_iterations`` (at most 1); at
 ``full_coverage`` the field alone is used. The first views of a new scene are
 therefore the backbone's, and the field takes over where it has been trained.
 
+With ``fallback: keyframes`` (the default) what is blended in is not the one
+frame's embedding but, per pixel, the mean over the frame and the stored
+keyframes that see its 3D point (the same visibility test as the coverage),
+averaged as class probabilities (``fusion``), so the view's entropy is the
+predictive entropy over the views: it rises where views disagree, which a
+single frame cannot show. On the live schedule (``run.training_rate_hz``) the
+field rarely matures within a short sequence, so this fusion is what the
+multi-view map contributes there (bench/results/ncd.json, rows
+``fallback_backbone`` and ``backbone_logits``).
+
 Flow control: at most ``max_in_flight`` views are published and not yet
 labelled (the node sees labels come back on /neurncd/labels); the renderer
 waits instead of flooding a slower discovery, so latency stays bounded and
@@ -45,6 +55,7 @@ from ..frame import Frame
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
+from ..uncertainty import softmax
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 
 
@@ -68,7 +79,7 @@ class MapperNodeConfig:
                                        lo=0.1, hi=600.0, unit="s")
     stale_after_s: float = param(1.0, "a non-keyframe frame not rendered within this of its "
                                  "arrival is dropped", lo=0.01, hi=600.0, unit="s")
-    fallback: str = param("backbone", "where the field has not learnt a point yet: blend in "
+    fallback: str = param("keyframes", "where the field has not learnt a point yet: blend in "
                           "the frame's backbone embedding by coverage ('backbone'), the mean "
                           "of it and the stored backbone embeddings of the keyframes that see "
                           "the point ('keyframes'), or render the field everywhere ('none')",
@@ -84,6 +95,10 @@ class MapperNodeConfig:
     min_field_weight: float = param(0.1, "pixels whose field weight is below this take the "
                                     "backbone's embedding alone and are not rendered (the "
                                     "render is the stage's main cost)", lo=0.0, hi=1.0)
+    fusion: str = param("probabilities", "fallback keyframes: average the views' logits, or their "
+                        "class probabilities ('probabilities': the view's entropy is then the "
+                        "predictive entropy over the views, higher where they disagree)",
+                        choices=("logits", "probabilities"))
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
@@ -166,17 +181,26 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
 
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
-                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+                   tolerance: float, logit_channels: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
     :func:`coverage`), and how many views were averaged (N,).
+
+    ``logit_channels`` S: average the first S channels as class probabilities
+    (softmax) and return their log, so the entropy of the result is the
+    predictive entropy over the views, which grows where they disagree (a
+    novelty cue no single frame has); None averages every channel as it is.
 
     This is the multi-view evidence the field is trained on, read directly: until
     the field has learnt a point, the view's embedding there is the mean over the
     views of it rather than the one frame's (a per-frame confusion, e.g. a picture
     called wall from one angle, is outvoted by the others).
     """
+    S = 0 if logit_channels is None else int(logit_channels)
     acc = own.astype(np.float32, copy=True)
+    if S:
+        acc[:, :S] = softmax(acc[:, :S])
     n = np.ones(len(points), np.float32)
     for kf in keyframes:
         seen, ui, vi = _seen(points, kf, tolerance)
@@ -186,9 +210,15 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
         eh, ew = kf.embedding.shape[:2]
         ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
         ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
-        acc[seen] += kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
+        emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
+        if S:
+            emb[:, :S] = softmax(emb[:, :S])
+        acc[seen] += emb
         n[seen] += 1.0
-    return acc / n[:, None], n
+    acc /= n[:, None]
+    if S:
+        acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
+    return acc, n
 
 
 class MapperStage:
@@ -411,7 +441,8 @@ class MapperStage:
         out[mask] = w
         return out
 
-    def keyframe_fill(self, frame: Frame, backbone: np.ndarray) -> np.ndarray:
+    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, logit_channels: int
+                      ) -> np.ndarray:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
         stored embeddings of the nearest keyframes that see it (:func:`fuse_keyframes`);
         pixels without depth keep the frame's own."""
@@ -422,8 +453,9 @@ class MapperStage:
         depth = resize_to(frame.depth, h, w, cv2.INTER_NEAREST)
         pts, mask = backproject(depth, frame.intrinsics.scaled(w, h), frame.pose)
         out = backbone.copy()
-        out[mask], _ = fuse_keyframes(pts, backbone[mask], kfs,
-                                      self.cfg.coverage_depth_tolerance)
+        out[mask], _ = fuse_keyframes(
+            pts, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
+            logit_channels if self.cfg.fusion == "probabilities" else None)
         return out
 
     def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
@@ -440,7 +472,7 @@ class MapperStage:
         weight = (self.field_weight(f, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
         if self.cfg.fallback == "keyframes":
-            backbone = self.keyframe_fill(f, backbone)
+            backbone = self.keyframe_fill(f, backbone, spec.logit_channels)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
