@@ -169,12 +169,17 @@ def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[
 NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
          '(discovery.mode_split) use per-frame inputs only (the camera colour and the clusters), '
          'so the backbone_logits row gets them too; compare neurncd with backbone_logits for what '
-         'the Embedding-NeRF adds, and no_colour_no_split / backbone_logits_no_colour_no_split for'
-         ' the discovery before them. Defaults chosen on tuning seeds 500-501 only (not the full '
-         '--tune search). novel_id_stability: per novel object (GT instance of a novel class), the '
-         'share of its pixels over the scene\'s labelled frames carrying its most common '
-         'predicted id, mean over objects then over scenes (a fraction); _found: over its '
-         'novel-labelled pixels only.')
+         'the mapper stage adds (on the live schedule the field renders no pixel of these 150-'
+         'frame scenes, field_share 0 in bench/results/ncd_diagnosis.json, so what it adds is '
+         'the keyframe fusion, mapper_node.fallback keyframes: compare fallback_backbone), and '
+         'no_colour_no_split / backbone_logits_no_colour_no_split for the discovery before them. '
+         'Discovery defaults chosen on tuning seeds 500-501, the keyframe fusion on 500-503 (not '
+         'the full --tune search). novel_id_stability: per novel object (GT instance of a novel '
+         'class), the share of its pixels over the scene\'s labelled frames carrying its most '
+         'common predicted id (known ids included, so an object always called wall scores 1), '
+         'mean over objects then over scenes (a fraction); _found: over its novel-labelled '
+         'pixels only. view_ms: the mapper stage per view (keyframe fusion and any field '
+         'render), median.')
 
 METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
 
