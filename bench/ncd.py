@@ -388,7 +388,8 @@ def main() -> None:
     ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
     ap.add_argument("--diagnose", action="store_true",
                     help="only the diagnosis on the tuning scenes (bench/results/"
-                         "ncd_diagnosis.json): field share, agreement, entropy, per-class IoU")
+                         "ncd_diagnosis.json, with --set ncd_diagnosis_<values>.json): field "
+                         "share, agreement, entropy, per-class IoU")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--test-scenes", type=int, default=8)
     ap.add_argument("--tune-scenes", type=int, default=4)
@@ -414,7 +415,8 @@ def main() -> None:
                 "set": args.set, **diagnose(tune_scenes, base, args.workers),
                 "commit": commit()}
         RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "ncd_diagnosis.json").write_text(json.dumps(diag, indent=1))
+        slug = "".join(f"_{v.split('=', 1)[1]}" for v in args.set)  # e.g. _keyframes
+        (RESULTS / f"ncd_diagnosis{slug}.json").write_text(json.dumps(diag, indent=1))
         print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
         for i, row in enumerate(diag["per_scene"]):
             print(diag["tune_seeds"][i], json.dumps(row))
