@@ -198,6 +198,20 @@ def test_keyframe_fallback_fuses_the_stored_views_before_the_field_has_learnt(cf
     assert np.allclose(view.entropy, uncertainty.entropy(view.embedding), atol=1e-5)
 
 
+def test_keyframe_fusion_also_reads_the_recent_frames_when_asked(cfg, backbone, frames):
+    records = {f.stamp_ns: _record(backbone, f) for f in frames[:30:2]}
+    views = {}
+    for recent in (0, 4):
+        st = _stage(cfg, fallback="keyframes", fusion_recent=recent, render_scale=0.5)
+        jobs = [st.admit(f, records[f.stamp_ns]) for f in frames[:30:2]]
+        others = [j for j in jobs if not j.keyframe]
+        assert len(others) >= 2
+        assert len(st._recent) == (min(4, len(others)) if recent else 0)
+        views[recent] = st.render_view(jobs[-1]).embedding
+    # The frames not admitted as keyframes see the same points, so they change the mean.
+    assert not np.allclose(views[0], views[4])
+
+
 def test_a_stopped_training_thread_stops_the_views(cfg, backbone, frames):
     st = MapperStage(cfg.mapper_node, mapper_factory(cfg), online=True)
     job = st.admit(frames[0], _record(backbone, frames[0]))

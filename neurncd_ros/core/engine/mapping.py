@@ -99,6 +99,10 @@ class MapperNodeConfig:
                         "class probabilities ('probabilities': the view's entropy is then the "
                         "predictive entropy over the views, higher where they disagree)",
                         choices=("logits", "probabilities"))
+    fusion_recent: int = param(0, "fallback keyframes: also fuse this many of the most "
+                               "recent frames that were not admitted as keyframes (their depth, "
+                               "pose and backbone embedding are held for it; 0 = keyframes only)",
+                               lo=0, hi=256)
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
@@ -128,6 +132,18 @@ class MapperNodeConfig:
     queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
+
+
+@dataclasses.dataclass(frozen=True)
+class _StoredView:
+    """A recent non-keyframe frame held for the keyframe fusion (what :func:`fuse_keyframes`
+    reads of a keyframe)."""
+
+    stamp_ns: int
+    pose: np.ndarray
+    intrinsics: Intrinsics
+    depth: np.ndarray
+    embedding: np.ndarray
 
 
 @dataclasses.dataclass
@@ -245,6 +261,7 @@ class MapperStage:
         self._latest: ViewJob | None = None
         self._in_flight: dict[int, float] = {}
         self.keyframe_stamps: list[int] = []
+        self._recent: collections.deque = collections.deque(maxlen=max(1, cfg.fusion_recent))
         self.health.set_state("waiting", "no frame with an embedding yet")
 
     # ------------------------------------------------------------ the field
@@ -372,6 +389,10 @@ class MapperStage:
                 if self._latest is not None:
                     self.health.count("skipped_newer")
                 self._latest = job
+                if self.cfg.fallback == "keyframes" and self.cfg.fusion_recent > 0:
+                    self._recent.append(_StoredView(
+                        frame.stamp_ns, frame.pose, frame.intrinsics, frame.depth,
+                        np.asarray(record.embedding, np.float16)))
         self.health.set_state("running")
         return job
 
@@ -448,6 +469,9 @@ class MapperStage:
         pixels without depth keep the frame's own."""
         h, w = backbone.shape[:2]
         kfs = self._nearest_keyframes(frame)
+        if self.cfg.fusion_recent > 0:
+            with self._lock:
+                kfs += [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
         if not kfs:
             return backbone
         depth = resize_to(frame.depth, h, w, cv2.INTER_NEAREST)
