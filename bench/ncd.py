@@ -170,7 +170,7 @@ NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
          '(discovery.mode_split) use per-frame inputs only (the camera colour and the clusters), '
          'so the backbone_logits row gets them too; compare neurncd with backbone_logits for what '
          'the mapper stage adds (on the live schedule the field renders no pixel of these 150-'
-         'frame scenes, field_share 0 in bench/results/ncd_diagnosis.json, so what it adds is '
+         'frame scenes, field_share 0 in bench/results/ncd_diagnosis_fallback-backbone.json, so what it adds is '
          'the keyframe fusion, mapper_node.fallback keyframes: compare fallback_backbone), and '
          'no_colour_no_split / backbone_logits_no_colour_no_split for the discovery before them. '
          'Discovery defaults chosen on tuning seeds 500-501, the keyframe fusion on 500-503 (not '
@@ -388,7 +388,7 @@ def main() -> None:
     ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
     ap.add_argument("--diagnose", action="store_true",
                     help="only the diagnosis on the tuning scenes (bench/results/"
-                         "ncd_diagnosis.json, with --set ncd_diagnosis_<values>.json): field "
+                         "ncd_diagnosis.json, with --set ncd_diagnosis_<key-value>.json): field "
                          "share, agreement, entropy, per-class IoU")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--test-scenes", type=int, default=8)
@@ -415,7 +415,8 @@ def main() -> None:
                 "set": args.set, **diagnose(tune_scenes, base, args.workers),
                 "commit": commit()}
         RESULTS.mkdir(parents=True, exist_ok=True)
-        slug = "".join(f"_{v.split('=', 1)[1]}" for v in args.set)  # e.g. _keyframes
+        slug = "".join("_" + v.split("=", 1)[0].split(".")[-1] + "-" + v.split("=", 1)[1]
+                       for v in args.set)  # e.g. _fallback-keyframes
         (RESULTS / f"ncd_diagnosis{slug}.json").write_text(json.dumps(diag, indent=1))
         print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
         for i, row in enumerate(diag["per_scene"]):
