@@ -28,6 +28,11 @@ the report gives the mean over scenes. Rows of the report (percent):
   into novel ones (``discovery.mode_split`` off);
 - ``no_colour_no_split``: both off (the descriptor and decision before issue 11);
 - ``backbone``: the backbone's argmax alone (knows no novel class);
+- ``fallback_backbone``: the mapper stage blending in the frame's own backbone
+  embedding where the field has not learnt the scene (``mapper_node.fallback``
+  backbone, before issue 11) instead of the keyframe fusion; ``fusion_logits``:
+  the keyframe fusion averaging logits instead of class probabilities (these
+  rows render the scenes again);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -71,7 +76,7 @@ from neurncd_ros.core.camera import Intrinsics  # noqa: E402
 from neurncd_ros import synth  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
-from neurncd_ros.core.discovery.metrics import Evaluator  # noqa: E402
+from neurncd_ros.core.discovery.metrics import Evaluator, IdStability  # noqa: E402
 from neurncd_ros.core.params import to_dict  # noqa: E402
 
 from _common import commit  # noqa: E402  (bench/ is on sys.path)
@@ -92,19 +97,28 @@ def _key(cfg: config.Config, seed: int, frames: int) -> str:
     return h.hexdigest()[:12]
 
 
+ROWS = ("rgb", "depth", "K", "embedding", "entropy", "logits", "semantic", "instance",
+        "stamp", "keyframe", "field_share", "iterations")
+
+
 def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
     """Labelled frames of one scene: depth, K, rendered embedding/entropy, backbone logits,
-    semantic, rgb (arrays stacked over frames; embeddings float16)."""
+    semantic, instance, rgb, the view's field share and the field's iterations (arrays
+    stacked over frames; embeddings float16). A cache file without one of these arrays
+    (written before it was kept) is rendered again."""
     path = CACHE / f"ncd_s{seed}_n{frames}_{_key(cfg, seed, frames)}.npz"
     if path.is_file():
         with np.load(path) as z:
-            return {k: z[k] for k in z.files}
+            if set(ROWS) <= set(z.files):
+                return {k: z[k] for k in z.files}
     engine = OfflineEngine(cfg, load_backbone(cfg.backbone))
-    rows: dict[str, list] = {k: [] for k in ("rgb", "depth", "K", "embedding", "entropy",
-                                             "logits", "semantic", "stamp", "keyframe")}
+    rows: dict[str, list] = {k: [] for k in ROWS + ("render_ms",)}
     stream = synth.generate(seed, frames, cfg.synth)
+    rendered = 0.0
     for o in engine.run(stream, total=frames, progress=False):
         f, v = o.frame, o.view
+        rows["render_ms"].append(1000 * (engine.seconds["rendering"] - rendered))
+        rendered = engine.seconds["rendering"]
         h, w = f.depth.shape
         rows["rgb"].append(f.rgb)
         rows["depth"].append(f.depth)
@@ -113,6 +127,9 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
         rows["entropy"].append(resize_to(v.entropy, h, w))
         rows["logits"].append(resize_to(o.embedding.logits, h, w).astype(np.float16))
         rows["semantic"].append(f.semantic)
+        rows["instance"].append(f.instance)
+        rows["field_share"].append(v.field_share)
+        rows["iterations"].append(v.iterations)
         rows["stamp"].append(f.stamp_ns)
         rows["keyframe"].append(v.keyframe)
     data = {k: np.stack(v) for k, v in rows.items()}
@@ -132,8 +149,14 @@ def _scene_job(job: tuple) -> int:
 
 def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[dict]:
     """:func:`scene` for several seeds; missing ones rendered in ``workers`` processes."""
-    todo = [s for s in scene_seeds
-            if not (CACHE / f"ncd_s{s}_n{frames}_{_key(cfg, s, frames)}.npz").is_file()]
+    def cached(seed: int) -> bool:
+        path = CACHE / f"ncd_s{seed}_n{frames}_{_key(cfg, seed, frames)}.npz"
+        if not path.is_file():
+            return False
+        with np.load(path) as z:
+            return set(ROWS) <= set(z.files)
+
+    todo = [s for s in scene_seeds if not cached(s)]
     if workers > 1 and len(todo) > 1:
         import multiprocessing as mp
         with mp.get_context("fork").Pool(min(workers, len(todo))) as pool:
@@ -146,9 +169,18 @@ def prepare(cfg: config.Config, scene_seeds, frames: int, workers: int) -> list[
 NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
          '(discovery.mode_split) use per-frame inputs only (the camera colour and the clusters), '
          'so the backbone_logits row gets them too; compare neurncd with backbone_logits for what '
-         'the Embedding-NeRF adds, and no_colour_no_split / backbone_logits_no_colour_no_split for'
-         ' the discovery before them. Defaults chosen on tuning seeds 500-501 only (not the full '
-         '--tune search). Novel id stability is not measured here.')
+         'the mapper stage adds (on the live schedule the field renders no pixel of these 150-'
+         'frame scenes, field_share 0 in bench/results/ncd_diagnosis_fallback-backbone.json, '
+         'so what it adds is the keyframe fusion, mapper_node.fallback keyframes: compare '
+         'fallback_backbone), and '
+         'no_colour_no_split / backbone_logits_no_colour_no_split for the discovery before them. '
+         'Discovery defaults chosen on tuning seeds 500-501, the keyframe fusion on 500-503 (not '
+         'the full --tune search). novel_id_stability: per novel object (GT instance of a novel '
+         'class), the share of its pixels over the scene\'s labelled frames carrying its most '
+         'common predicted id (known ids included, so an object always called wall scores 1), '
+         'mean over objects then over scenes (a fraction); _found: over its novel-labelled '
+         'pixels only. view_ms: the mapper stage per view (keyframe fusion and any field '
+         'render), median.')
 
 METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
 
@@ -162,7 +194,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
     of a few frames for the picture.
     """
-    ev = Evaluator()
+    ev, stable = Evaluator(), IdStability()
     c2i = classes.CHANNEL_TO_ID
     times = []
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
@@ -183,12 +215,14 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
                             sc["rgb"][i])
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
+        stable.update(lab, sc["semantic"][i], sc["instance"][i])
         if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
             keep.append((sc["rgb"][i], sc["semantic"][i],
                          c2i[logits.argmax(-1)].astype(np.uint16), lab, ent))
     r = ev.result()
     out = {k: r[k] for k in METRICS}
     out["novel_classes_matched"] = len(r["novel_matching"])
+    out.update(stable.result())
     out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
     return out, times
 
@@ -221,6 +255,10 @@ def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
     for k in ("miou_all", "miou_known", "miou_novel"):
         out[f"std_{k}"] = float(np.std([r[k] for r, _ in per]))
     out["novel_classes_matched"] = int(sum(r["novel_classes_matched"] for r, _ in per))
+    for k in ("novel_id_stability", "novel_id_stability_found"):  # mean over scenes
+        v = [r[k] for r, _ in per if not np.isnan(r[k])]
+        out[k] = float(np.mean(v)) if v else float("nan")
+    out["novel_objects"] = int(sum(r["novel_objects"] for r, _ in per))
     out["ms_per_frame"] = 1000 * statistics.median([t for _, ts in per for t in ts])
     names = sorted({c for r, _ in per for c in r["iou"]})
     out["iou"] = {c: float(np.mean([r["iou"][c] for r, _ in per if c in r["iou"]]))
@@ -234,6 +272,18 @@ def with_overrides(base: config.Config, overrides: dict) -> config.Config:
         sec, name = key.split(".", 1)
         nested[sec][name] = value
     return config.from_nested(nested)
+
+
+def engine_rows(base: config.Config) -> dict[str, dict]:
+    """Rows that change the engine before discovery (the mapper stage), for which the
+    scenes are rendered again: ``fallback_<x>`` for each fallback other than the shipped
+    one (what the view is where the field has not learnt the scene)."""
+    rows = {f"fallback_{v}": {"mapper_node.fallback": v} for v in ("backbone", "keyframes")
+            if v != base.mapper_node.fallback}
+    other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
+    if base.mapper_node.fallback == "keyframes":
+        rows[f"fusion_{other}"] = {"mapper_node.fusion": other}
+    return rows
 
 
 GRID = {
@@ -275,6 +325,53 @@ def tune(scenes: list[dict], base: config.Config, rounds: int = 2, workers: int 
     return {"best": best, "miou_all": score}, rows
 
 
+def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
+    """Where the full pipeline differs from per-frame logits, in numbers (tuning scenes only).
+
+    Per scene and split by keyframe / other view: the share of pixels the field
+    rendered (``field_share``), the field's iterations at the last view, how often
+    the rendered embedding's argmax agrees with the backbone's, the argmax accuracy
+    of each on known-class pixels, and the mean normalised entropy of each on
+    known and on novel pixels; then both discovery rows with per-class IoU.
+    """
+    c2i = classes.CHANNEL_TO_ID
+    known, novel = np.array(classes.KNOWN_IDS), np.array(classes.NOVEL_IDS)
+    per = []
+    for sc in scenes:
+        rend = sc["embedding"].astype(np.float32)
+        lg = sc["logits"].astype(np.float32)
+        gt = sc["semantic"]
+        r_ids, b_ids = c2i[rend.argmax(-1)], c2i[lg.argmax(-1)]
+        S = lg.shape[-1]
+        ent_r = sc["entropy"] / np.log(S)
+        ent_b = np.stack([entropy(x) for x in lg]) / np.log(S)
+        row = {"frames": int(len(gt)), "keyframes": int(sc["keyframe"].sum()),
+               "iterations_last_view": int(sc["iterations"][-1])}
+        for part, sel in (("keyframe", sc["keyframe"]), ("other", ~sc["keyframe"])):
+            if not sel.any():
+                continue
+            g = gt[sel]
+            kn, nv = np.isin(g, known), np.isin(g, novel)
+            row[part] = {
+                "views": int(sel.sum()),
+                "field_share": float(sc["field_share"][sel].mean()),
+                "agreement": float((r_ids[sel] == b_ids[sel])[g > 0].mean()),
+                "known_acc_rendered": float((r_ids[sel] == g)[kn].mean()),
+                "known_acc_backbone": float((b_ids[sel] == g)[kn].mean()),
+                "entropy_known_rendered": float(ent_r[sel][kn].mean()),
+                "entropy_known_backbone": float(ent_b[sel][kn].mean()),
+                "entropy_novel_rendered": float(ent_r[sel][nv].mean()) if nv.any() else None,
+                "entropy_novel_backbone": float(ent_b[sel][nv].mean()) if nv.any() else None,
+            }
+        per.append(row)
+    out = {"per_scene": per}
+    for name, source in (("rendered", "rendered"), ("logits", "logits")):
+        r = discover(scenes, cfg, source, workers=workers)
+        out[name] = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel",
+                                       "novel_id_stability", "iou")}
+    return out
+
+
 def picture(rows: list, path: Path) -> None:
     tiles = []
     for rgb, gt, bb_ids, lab, ent in rows:
@@ -290,6 +387,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 + 2 short scenes (smoke)")
     ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
+    ap.add_argument("--diagnose", action="store_true",
+                    help="only the diagnosis on the tuning scenes (bench/results/"
+                         "ncd_diagnosis.json, with --set ncd_diagnosis_<key-value>.json): field "
+                         "share, agreement, entropy, per-class IoU")
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--test-scenes", type=int, default=8)
     ap.add_argument("--tune-scenes", type=int, default=4)
@@ -309,10 +410,29 @@ def main() -> None:
     res: dict = {"frames_per_scene": frames, "quick": bool(args.quick),
                  "test_seeds": list(seeds.TEST[:n_test])}
 
+    if args.diagnose:
+        tune_scenes = prepare(base, seeds.TUNE[:n_tune], frames, args.workers)
+        diag = {"tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
+                "set": args.set, **diagnose(tune_scenes, base, args.workers),
+                "commit": commit()}
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        slug = "".join("_" + v.split("=", 1)[0].split(".")[-1] + "-" + v.split("=", 1)[1]
+                       for v in args.set)  # e.g. _fallback-keyframes
+        (RESULTS / f"ncd_diagnosis{slug}.json").write_text(json.dumps(diag, indent=1))
+        print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
+        for i, row in enumerate(diag["per_scene"]):
+            print(diag["tune_seeds"][i], json.dumps(row))
+        return
+
     t0 = time.perf_counter()
     wanted = list(seeds.TEST[:n_test]) + (list(seeds.TUNE[:n_tune]) if args.tune else [])
     prepare(base, wanted, frames, args.workers)
     test = prepare(base, seeds.TEST[:n_test], frames, 1)
+    engine = {}  # rows whose engine (mapper stage) differs: their own renderings
+    for name, overrides in engine_rows(base).items():
+        cfg = with_overrides(base, overrides)
+        prepare(cfg, seeds.TEST[:n_test], frames, args.workers)
+        engine[name] = (cfg, prepare(cfg, seeds.TEST[:n_test], frames, 1))
     res["scene_seconds"] = round(time.perf_counter() - t0, 1)
     res["labelled_frames"] = int(sum(len(s["depth"]) for s in test))
     if args.tune:
@@ -346,8 +466,10 @@ def main() -> None:
                                   "discovery.mode_split": False}), "logits"),
         "backbone": (base, "argmax"),
     }
+    variants.update({name: (cfg, "rendered") for name, (cfg, _) in engine.items()})
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
-        r = discover(test, cfg, source, keep if name == "neurncd" else None,
+        r = discover(engine[name][1] if name in engine else test, cfg, source,
+                     keep if name == "neurncd" else None,
                      workers=1 if name == "neurncd" else args.workers)
         for k, v in r.items():
             if k == "iou":
@@ -355,6 +477,10 @@ def main() -> None:
                     res[f"{name}_iou_{c}"] = x
             else:
                 res[f"{name}_{k}"] = v
+    for name, scs in [("neurncd", test)] + [(n, e[1]) for n, e in engine.items()]:
+        if all("render_ms" in sc for sc in scs):  # the mapper stage's time per view
+            res[f"{name}_view_ms"] = float(np.median(np.concatenate([sc["render_ms"]
+                                                                      for sc in scs])))
     res["notes"] = NOTES
     res["cores"] = os.cpu_count()
     res["commit"] = commit()
@@ -362,13 +488,14 @@ def main() -> None:
     (RESULTS / "ncd.json").write_text(json.dumps(res, indent=1, sort_keys=True))
     picture(keep, RESULTS / "ncd.png")
 
-    cols = METRICS + ("novel_classes_matched",)
+    cols = METRICS + ("novel_classes_matched", "novel_id_stability")
     print(f"\n{res['labelled_frames']} labelled frames of test seeds {res['test_seeds']} "
           f"({frames} frames each), percent")
     print(f"{'row':34s} " + " ".join(f"{c[:13]:>13s}" for c in cols))
     for name in variants:
         print(f"{name:34s} " + " ".join(
-            f"{res[f'{name}_{c}']:13.1f}" if isinstance(res[f"{name}_{c}"], float)
+            f"{res[f'{name}_{c}']:13.3f}" if c == "novel_id_stability"
+            else f"{res[f'{name}_{c}']:13.1f}" if isinstance(res[f"{name}_{c}"], float)
             else f"{res[f'{name}_{c}']:13d}" for c in cols))
     print(f"wrote {RESULTS / 'ncd.json'} and ncd.png")
 

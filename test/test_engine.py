@@ -133,7 +133,7 @@ def test_mapper_stage_serves_keyframes_first_then_the_newest_frame(cfg, backbone
 
 
 def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbone, frames):
-    st = _stage(cfg, mature_iterations=20, render_scale=0.5)
+    st = _stage(cfg, mature_iterations=20, render_scale=0.5, fallback="backbone")
     jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
     job = jobs[-1]
     fresh = st.render_view(job)
@@ -148,6 +148,68 @@ def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbo
     # The field has learnt the backbone's classes on the keyframes it trained on.
     agree = (view.embedding.argmax(-1) == bb.argmax(-1)).mean()
     assert agree > 0.6, agree
+
+
+def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_ones():
+    from types import SimpleNamespace
+
+    from neurncd_ros.core.camera import Intrinsics
+    from neurncd_ros.core.engine.mapping import fuse_keyframes
+
+    intr = Intrinsics.from_hfov(8, 6, 60.0)
+    pose = np.eye(4)
+
+    def kf(depth_m, value, x=0.0):
+        p = pose.copy()
+        p[0, 3] = x
+        emb = np.full((3, 4, 2), value, np.float16)  # half resolution, as stored
+        return SimpleNamespace(pose=p, intrinsics=intr, depth=np.full((6, 8), depth_m,
+                                                                     np.float32),
+                               embedding=emb)
+
+    points = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 9.0], [50.0, 0.0, 2.0]])
+    own = np.zeros((3, 2), np.float32)
+    # The first keyframe sees the wall at 2 m; the second sees it from 10 cm to the side;
+    # the third measured 1 m there: something in front, so the point is occluded for it.
+    fused, n = fuse_keyframes(points, own, [kf(2.0, 3.0), kf(2.0, 6.0, x=0.1),
+                                            kf(1.0, 100.0)], tolerance=0.05)
+    assert n.tolist() == [3.0, 1.0, 1.0]  # the far and the off-image points: own view only
+    assert np.allclose(fused[0], (0.0 + 3.0 + 6.0) / 3) and np.allclose(fused[1:], 0.0)
+    # Probabilities: own softmax (1/2, 1/2), the keyframe's logits (ln 3, 0) -> (3/4, 1/4);
+    # the mean (5/8, 3/8) comes back as log-probabilities.
+    other = kf(2.0, 0.0)
+    other.embedding[..., 0] = np.log(3.0)
+    fused, n = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2)
+    assert n.tolist() == [2.0] and np.allclose(fused, np.log([[5 / 8, 3 / 8]]), atol=1e-3)
+
+
+def test_keyframe_fallback_fuses_the_stored_views_before_the_field_has_learnt(cfg, backbone,
+                                                                              frames):
+    st = _stage(cfg, fallback="keyframes", fusion="logits", render_scale=0.5)
+    jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+    job = jobs[-1]
+    view = st.render_view(job)
+    bb = resize_to(job.embedding.embedding, 36, 48)
+    assert view.field_share == 0.0  # nothing rendered from the field yet
+    assert view.embedding.shape == bb.shape and not np.allclose(view.embedding, bb)
+    # The fused view still names what the frame's own logits name almost everywhere.
+    agree = (view.embedding.argmax(-1) == bb.argmax(-1)).mean()
+    assert agree > 0.8, agree
+    assert np.allclose(view.entropy, uncertainty.entropy(view.embedding), atol=1e-5)
+
+
+def test_keyframe_fusion_also_reads_the_recent_frames_when_asked(cfg, backbone, frames):
+    records = {f.stamp_ns: _record(backbone, f) for f in frames[:30:2]}
+    views = {}
+    for recent in (0, 4):
+        st = _stage(cfg, fallback="keyframes", fusion_recent=recent, render_scale=0.5)
+        jobs = [st.admit(f, records[f.stamp_ns]) for f in frames[:30:2]]
+        others = [j for j in jobs if not j.keyframe]
+        assert len(others) >= 2
+        assert len(st._recent) == (min(4, len(others)) if recent else 0)
+        views[recent] = st.render_view(jobs[-1]).embedding
+    # The frames not admitted as keyframes see the same points, so they change the mean.
+    assert not np.allclose(views[0], views[4])
 
 
 def test_a_stopped_training_thread_stops_the_views(cfg, backbone, frames):

@@ -89,3 +89,53 @@ def test_adjusted_rand_and_purity_by_hand():
     assert purity(truth, [0, 0, 0, 1]) == pytest.approx(0.75)
     # cluster 0 holds truth 0 weight 2 and truth 1 weight 2; cluster 1 truth 1 weight 1.
     assert purity(truth, [0, 0, 0, 1], weights=[1, 1, 2, 1]) == pytest.approx(3 / 5)
+
+
+# ---------------------------------------------------------------- novel id stability
+
+def _stability_frames():
+    """Two 1x6 frames: a picture (instance 5) and a window (instance 7) beside a wall."""
+    gt = np.array([[8, 8, 8, 13, 13, 12]], np.uint16)
+    inst = np.array([[5, 5, 5, 7, 7, 2]], np.uint16)
+    first = np.array([[100, 100, 12, 101, 101, 12]], np.uint16)
+    second = np.array([[100, 101, 100, 102, 101, 100]], np.uint16)
+    return gt, inst, first, second
+
+
+def test_id_stability_hand_computed():
+    from neurncd_ros.core.discovery.metrics import IdStability
+    gt, inst, first, second = _stability_frames()
+    st = IdStability()
+    st.update(first, gt, inst)
+    st.update(second, gt, inst)
+    # picture: ids 100,100,12,100,101,100 -> 4 of 6 carry 100; novel only: 4 of 5
+    # window: ids 101,101,102,101 -> 3 of 4; the wall (known class) is no novel object
+    assert st.per_object() == {5: pytest.approx(4 / 6), 7: pytest.approx(3 / 4)}
+    assert st.per_object(novel_only=True) == {5: pytest.approx(4 / 5), 7: pytest.approx(3 / 4)}
+    r = st.result()
+    assert r["novel_id_stability"] == pytest.approx((4 / 6 + 3 / 4) / 2)
+    assert r["novel_id_stability_found"] == pytest.approx((4 / 5 + 3 / 4) / 2)
+    assert (r["novel_objects"], r["novel_objects_found"]) == (2, 2)
+
+
+def test_id_stability_perfect_and_never_found():
+    from neurncd_ros.core.discovery.metrics import IdStability
+    gt, inst, _, _ = _stability_frames()
+    st = IdStability()
+    steady = np.array([[104, 104, 104, 12, 12, 12]], np.uint16)  # window always called wall
+    st.update(steady, gt, inst)
+    st.update(steady, gt, inst)
+    assert st.per_object() == {5: 1.0, 7: 1.0}
+    assert st.per_object(novel_only=True) == {5: 1.0}
+    assert st.result()["novel_objects_found"] == 1
+    empty = IdStability().result()
+    assert np.isnan(empty["novel_id_stability"]) and empty["novel_objects"] == 0
+
+
+def test_id_stability_rejects_bad_instance():
+    from neurncd_ros.core.discovery.metrics import IdStability
+    gt, inst, first, _ = _stability_frames()
+    with pytest.raises(ValueError, match="instance shape"):
+        IdStability().update(first, gt, inst[:, :3])
+    with pytest.raises(ValueError, match="instance must be an integer"):
+        IdStability().update(first, gt, inst.astype(np.float32))

@@ -216,3 +216,62 @@ def purity(truth: np.ndarray, pred: np.ndarray, weights: np.ndarray | None = Non
     table = np.zeros((pi.max() + 1, ti.max() + 1))
     np.add.at(table, (pi, ti), w)
     return float(table.max(axis=1).sum() / table.sum())
+
+
+# ---------------------------------------------------------------- novel id stability
+
+class IdStability:
+    """How steadily each novel object keeps one id over the frames of a scene.
+
+    A novel object is a ground-truth instance whose class is novel
+    (``classes.NOVEL_IDS``). Over all frames given to :meth:`update`, the object's
+    pixels are counted per predicted id (known ids, 0 and novel ids alike); its
+    stability is the share of its pixels carrying its most common id. An object
+    split between two novel ids, or half "wall" and half novel, scores 0.5. The
+    scene's figure is the mean over objects, each object counting once (a small
+    picture as much as a large window). Instance ids must be those of one scene.
+    ``novel_only`` counts only the pixels that carry a novel id, i.e. whether the
+    object keeps the same novel id once it is found, apart from whether it is found.
+    Fractions in [0, 1]; NaN when no novel object was seen.
+    """
+
+    def __init__(self) -> None:
+        self._counts: dict[int, dict[int, int]] = {}  # instance -> pred id -> pixels
+
+    def update(self, pred: np.ndarray, gt: np.ndarray, instance: np.ndarray) -> None:
+        """Add one frame: predicted ids, NYU-13 ground truth, instance ids (same shape)."""
+        p, g = _check_pair(pred, gt)
+        inst = np.asarray(instance)
+        if inst.shape != np.shape(pred):
+            raise ValueError(f"instance shape {inst.shape} differs from pred shape "
+                             f"{np.shape(pred)}")
+        if not np.issubdtype(inst.dtype, np.integer):
+            raise ValueError(f"instance must be an integer image, got {inst.dtype}")
+        inst = inst.astype(np.int64).ravel()
+        sel = np.isin(g, NOVEL_IDS) & (inst > 0)
+        if not sel.any():
+            return
+        pairs, n = np.unique(np.stack([inst[sel], p[sel]]), axis=1, return_counts=True)
+        for (i, pid), c in zip(pairs.T.tolist(), n.tolist()):
+            row = self._counts.setdefault(i, {})
+            row[pid] = row.get(pid, 0) + c
+
+    def per_object(self, novel_only: bool = False) -> dict[int, float]:
+        """Instance id -> stability; ``novel_only``: over the pixels with a novel id
+        (objects never given a novel id are left out)."""
+        out = {}
+        for i, row in sorted(self._counts.items()):
+            counts = [c for pid, c in row.items() if not novel_only or pid >= NOVEL_ID_START]
+            if counts:
+                out[i] = max(counts) / sum(counts)
+        return out
+
+    def result(self) -> dict:
+        """``novel_id_stability`` (all of an object's pixels), ``novel_id_stability_found``
+        (its novel-labelled pixels only), ``novel_objects`` (how many were seen)."""
+        every, found = self.per_object(), self.per_object(novel_only=True)
+        nan = float("nan")
+        return {"novel_id_stability": float(np.mean(list(every.values()))) if every else nan,
+                "novel_id_stability_found": (float(np.mean(list(found.values())))
+                                             if found else nan),
+                "novel_objects": len(every), "novel_objects_found": len(found)}

@@ -20,6 +20,16 @@ iterations since admission / ``mature_iterations`` (at most 1); at
 ``full_coverage`` the field alone is used. The first views of a new scene are
 therefore the backbone's, and the field takes over where it has been trained.
 
+With ``fallback: keyframes`` (the default) what is blended in is not the one
+frame's embedding but, per pixel, the mean over the frame and the stored
+keyframes that see its 3D point (the same visibility test as the coverage),
+averaged as class probabilities (``fusion``), so the view's entropy is the
+predictive entropy over the views: it rises where views disagree, which a
+single frame cannot show. On the live schedule (``run.training_rate_hz``) the
+field rarely matures within a short sequence, so this fusion is what the
+multi-view map contributes there (bench/results/ncd.json, rows
+``fallback_backbone`` and ``backbone_logits``).
+
 Flow control: at most ``max_in_flight`` views are published and not yet
 labelled (the node sees labels come back on /neurncd/labels); the renderer
 waits instead of flooding a slower discovery, so latency stays bounded and
@@ -45,6 +55,7 @@ from ..frame import Frame
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
+from ..uncertainty import softmax
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 
 
@@ -68,9 +79,11 @@ class MapperNodeConfig:
                                        lo=0.1, hi=600.0, unit="s")
     stale_after_s: float = param(1.0, "a non-keyframe frame not rendered within this of its "
                                  "arrival is dropped", lo=0.01, hi=600.0, unit="s")
-    fallback: str = param("backbone", "where the field has not learnt a point yet: blend in "
-                          "the frame's backbone embedding by coverage ('backbone'), or render "
-                          "the field everywhere ('none')", choices=("backbone", "none"))
+    fallback: str = param("keyframes", "where the field has not learnt a point yet: blend in "
+                          "the frame's backbone embedding by coverage ('backbone'), the mean "
+                          "of it and the stored backbone embeddings of the keyframes that see "
+                          "the point ('keyframes'), or render the field everywhere ('none')",
+                          choices=("backbone", "keyframes", "none"))
     mature_iterations: int = param(1000, "training iterations after which a keyframe's "
                                    "points are rendered from the field alone (the fast field "
                                    "matches the backbone after about as many, "
@@ -82,6 +95,14 @@ class MapperNodeConfig:
     min_field_weight: float = param(0.1, "pixels whose field weight is below this take the "
                                     "backbone's embedding alone and are not rendered (the "
                                     "render is the stage's main cost)", lo=0.0, hi=1.0)
+    fusion: str = param("probabilities", "fallback keyframes: average the views' logits, or their "
+                        "class probabilities ('probabilities': the view's entropy is then the "
+                        "predictive entropy over the views, higher where they disagree)",
+                        choices=("logits", "probabilities"))
+    fusion_recent: int = param(0, "fallback keyframes: also fuse this many of the most "
+                               "recent frames that were not admitted as keyframes (their depth, "
+                               "pose and backbone embedding are held for it; 0 = keyframes only)",
+                               lo=0, hi=256)
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
@@ -124,6 +145,18 @@ class MapperNodeConfig:
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
 
+@dataclasses.dataclass(frozen=True)
+class _StoredView:
+    """A recent non-keyframe frame held for the keyframe fusion (what :func:`fuse_keyframes`
+    reads of a keyframe)."""
+
+    stamp_ns: int
+    pose: np.ndarray
+    intrinsics: Intrinsics
+    depth: np.ndarray
+    embedding: np.ndarray
+
+
 @dataclasses.dataclass
 class ViewJob:
     """A frame waiting to be rendered."""
@@ -143,6 +176,20 @@ def resize_to(arr: np.ndarray, height: int, width: int,
     return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
 
 
+def _seen(points: np.ndarray, kf, tolerance: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which world points a keyframe sees (in its image, in front, its measured depth
+    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
+    u, v, z = project(points, kf.intrinsics, kf.pose)
+    ui = np.floor(u + 0.5).astype(np.int64)
+    vi = np.floor(v + 0.5).astype(np.int64)
+    h, w = kf.depth.shape
+    ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    zk = np.zeros(len(points), np.float32)
+    zk[ok] = kf.depth[vi[ok], ui[ok]]
+    return ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z), ui, vi
+
+
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
              tolerance: float) -> np.ndarray:
     """Per point, the highest maturity among the keyframes that see it.
@@ -155,16 +202,50 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
     for kf, m in zip(keyframes, maturity):
         if m <= 0:
             continue
-        u, v, z = project(points, kf.intrinsics, kf.pose)
-        ui = np.floor(u + 0.5).astype(np.int64)
-        vi = np.floor(v + 0.5).astype(np.int64)
-        h, w = kf.depth.shape
-        ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        zk = np.zeros(len(points), np.float32)
-        zk[ok] = kf.depth[vi[ok], ui[ok]]
-        seen = ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
+        seen, _, _ = _seen(points, kf, tolerance)
         np.maximum(cov, m * seen, out=cov)
     return cov
+
+
+def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
+                   tolerance: float, logit_channels: int | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
+    backbone embeddings of the keyframes that see it (the visibility test of
+    :func:`coverage`), and how many views were averaged (N,).
+
+    ``logit_channels`` S: average the first S channels as class probabilities
+    (softmax) and return their log, so the entropy of the result is the
+    predictive entropy over the views, which grows where they disagree (a
+    novelty cue no single frame has); None averages every channel as it is.
+
+    This is the multi-view evidence the field is trained on, read directly: until
+    the field has learnt a point, the view's embedding there is the mean over the
+    views of it rather than the one frame's (a per-frame confusion, e.g. a picture
+    called wall from one angle, is outvoted by the others).
+    """
+    S = 0 if logit_channels is None else int(logit_channels)
+    acc = own.astype(np.float32, copy=True)
+    if S:
+        acc[:, :S] = softmax(acc[:, :S])
+    n = np.ones(len(points), np.float32)
+    for kf in keyframes:
+        seen, ui, vi = _seen(points, kf, tolerance)
+        if not seen.any():
+            continue
+        h, w = kf.depth.shape
+        eh, ew = kf.embedding.shape[:2]
+        ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
+        ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
+        emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
+        if S:
+            emb[:, :S] = softmax(emb[:, :S])
+        acc[seen] += emb
+        n[seen] += 1.0
+    acc /= n[:, None]
+    if S:
+        acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
+    return acc, n
 
 
 class MapperStage:
@@ -191,6 +272,7 @@ class MapperStage:
         self._latest: ViewJob | None = None
         self._in_flight: dict[int, float] = {}
         self.keyframe_stamps: list[int] = []
+        self._recent: collections.deque = collections.deque(maxlen=max(1, cfg.fusion_recent))
         self.health.set_state("waiting", "no frame with an embedding yet")
 
     # ------------------------------------------------------------ the field
@@ -318,6 +400,10 @@ class MapperStage:
                 if self._latest is not None:
                     self.health.count("skipped_newer")
                 self._latest = job
+                if self.cfg.fallback == "keyframes" and self.cfg.fusion_recent > 0:
+                    self._recent.append(_StoredView(
+                        frame.stamp_ns, frame.pose, frame.intrinsics, frame.depth,
+                        np.asarray(record.embedding, np.float16)))
         self.health.set_state("running")
         return job
 
@@ -360,28 +446,51 @@ class MapperStage:
             return len(self._keyframe_jobs) + (self._latest is not None) + len(self._in_flight)
 
     # ------------------------------------------------------------ rendering
+    def _nearest_keyframes(self, frame: Frame) -> list:
+        """The ``coverage_keyframes`` stored keyframes nearest the frame's pose (position and
+        view angle), the frame itself left out."""
+        kfs = [k for k in self.mapper.buffer.keyframes() if k.stamp_ns != frame.stamp_ns]
+        if not kfs:
+            return []
+        poses = np.stack([k.pose for k in kfs])
+        gap = np.linalg.norm(poses[:, :3, 3] - frame.pose[:3, 3], axis=1)
+        gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
+        return [kfs[i] for i in np.argsort(gap, kind="stable")[: self.cfg.coverage_keyframes]]
+
     def field_weight(self, frame: Frame, height: int, width: int) -> np.ndarray:
         """(height, width) weight of the field against the backbone (see module doc)."""
-        mapper = self.mapper
-        kfs = [k for k in mapper.buffer.keyframes() if k.stamp_ns != frame.stamp_ns]
-        if not kfs:
-            return np.zeros((height, width), np.float32)
+        kfs = self._nearest_keyframes(frame)
         maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
                              for k in kfs])
         if not np.any(maturity > 0):
             return np.zeros((height, width), np.float32)
-        poses = np.stack([k.pose for k in kfs])
-        gap = np.linalg.norm(poses[:, :3, 3] - frame.pose[:3, 3], axis=1)
-        gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
-        order = np.argsort(gap)[: self.cfg.coverage_keyframes]
         intr = frame.intrinsics.scaled(width, height)
         depth = resize_to(frame.depth, height, width, cv2.INTER_NEAREST)
         pts, mask = backproject(depth, intr, frame.pose)
-        cov = coverage(pts, [kfs[i] for i in order], maturity[order],
-                       self.cfg.coverage_depth_tolerance)
+        cov = coverage(pts, kfs, maturity, self.cfg.coverage_depth_tolerance)
         w = np.clip(cov / self.cfg.full_coverage, 0.0, 1.0).astype(np.float32)
         out = np.full((height, width), float(w.mean()) if w.size else 0.0, np.float32)
         out[mask] = w
+        return out
+
+    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, logit_channels: int
+                      ) -> np.ndarray:
+        """The frame's (h, w, C) backbone embedding averaged, point by point, with the
+        stored embeddings of the nearest keyframes that see it (:func:`fuse_keyframes`);
+        pixels without depth keep the frame's own."""
+        h, w = backbone.shape[:2]
+        kfs = self._nearest_keyframes(frame)
+        if self.cfg.fusion_recent > 0:
+            with self._lock:
+                kfs += [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
+        if not kfs:
+            return backbone
+        depth = resize_to(frame.depth, h, w, cv2.INTER_NEAREST)
+        pts, mask = backproject(depth, frame.intrinsics.scaled(w, h), frame.pose)
+        out = backbone.copy()
+        out[mask], _ = fuse_keyframes(
+            pts, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
+            logit_channels if self.cfg.fusion == "probabilities" else None)
         return out
 
     def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
@@ -395,8 +504,10 @@ class MapperStage:
         s = self.cfg.render_scale
         h, w = max(1, round(f.intrinsics.height * s)), max(1, round(f.intrinsics.width * s))
         backbone = resize_to(job.embedding.embedding.astype(np.float32), h, w)
-        weight = (self.field_weight(f, h, w) if self.cfg.fallback == "backbone"
+        weight = (self.field_weight(f, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
+        if self.cfg.fallback == "keyframes":
+            backbone = self.keyframe_fill(f, backbone, spec.logit_channels)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
