@@ -67,7 +67,7 @@ sys.path.insert(0, str(REPO))
 
 from neurncd_ros import config  # noqa: E402
 from neurncd_ros.core import classes  # noqa: E402
-from neurncd_ros.core.engine.mapping import resize_to  # noqa: E402
+from neurncd_ros.core.engine.views import resize_to  # noqa: E402
 from neurncd_ros.core.engine.offline import OfflineEngine  # noqa: E402
 from neurncd_ros.synth.training import generator_hash  # noqa: E402
 from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402

@@ -310,8 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bag", action="append", required=True,
                    help="bag with /camera/semantic/image_raw (repeat for several)")
     p.add_argument("--ablation", action="store_true", help="add Table 3's ablation rows")
-    p.add_argument("--baselines", action="store_true", help="add the explicit-map baseline and Semantic-NeRF label "
-                   "propagation at semnerf.label_fractions of each keyframe's pixels")
+    p.add_argument("--baselines", action="store_true",
+                   help="add the explicit-map baseline and Semantic-NeRF label propagation at "
+                   "semnerf.label_fractions of each keyframe's pixels")
     p.add_argument("--out", required=True)
     _add_config_args(p)
     p.set_defaults(func=cmd_eval)

@@ -17,7 +17,8 @@ from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
 from neurncd_ros.core.engine import health as H
 from neurncd_ros.core.engine.discovery import DiscoveryStage, ViewInput
 from neurncd_ros.core.engine.embedding import EmbeddingNodeConfig, EmbeddingStage
-from neurncd_ros.core.engine.mapping import MapperStage, resize_to
+from neurncd_ros.core.engine.mapping import MapperStage
+from neurncd_ros.core.engine.views import resize_to
 from neurncd_ros.core.engine.offline import OfflineEngine, mapper_factory
 from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
 
@@ -154,7 +155,7 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     from types import SimpleNamespace
 
     from neurncd_ros.core.camera import Intrinsics
-    from neurncd_ros.core.engine.mapping import fuse_keyframes
+    from neurncd_ros.core.engine.views import fuse_keyframes
 
     intr = Intrinsics.from_hfov(8, 6, 60.0)
     pose = np.eye(4)

@@ -23,7 +23,7 @@ from ..camera import Intrinsics
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
-from .mapping import resize_to
+from .views import resize_to
 from .records import EmbeddingSpec, LabelsRecord, ViewRecord
 
 

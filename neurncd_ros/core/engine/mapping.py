@@ -50,13 +50,13 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, backproject, project, rays
+from ..camera import Intrinsics, backproject, rays
 from ..frame import Frame
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
-from ..uncertainty import softmax
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
+from .views import StoredView, coverage, fuse_keyframes, resize_to
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,18 +145,6 @@ class MapperNodeConfig:
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
 
-@dataclasses.dataclass(frozen=True)
-class _StoredView:
-    """A recent non-keyframe frame held for the keyframe fusion (what :func:`fuse_keyframes`
-    reads of a keyframe)."""
-
-    stamp_ns: int
-    pose: np.ndarray
-    intrinsics: Intrinsics
-    depth: np.ndarray
-    embedding: np.ndarray
-
-
 @dataclasses.dataclass
 class ViewJob:
     """A frame waiting to be rendered."""
@@ -165,87 +153,6 @@ class ViewJob:
     embedding: EmbeddingRecord
     keyframe: bool
     enqueued: float
-
-
-def resize_to(arr: np.ndarray, height: int, width: int,
-              interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
-    """Resize an (H, W) or (H, W, C) image to height x width, channels kept."""
-    if arr.shape[:2] == (height, width):
-        return arr
-    out = cv2.resize(arr, (width, height), interpolation=interpolation)
-    return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
-
-
-def _seen(points: np.ndarray, kf, tolerance: float
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which world points a keyframe sees (in its image, in front, its measured depth
-    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
-    u, v, z = project(points, kf.intrinsics, kf.pose)
-    ui = np.floor(u + 0.5).astype(np.int64)
-    vi = np.floor(v + 0.5).astype(np.int64)
-    h, w = kf.depth.shape
-    ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    zk = np.zeros(len(points), np.float32)
-    zk[ok] = kf.depth[vi[ok], ui[ok]]
-    return ok & (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z), ui, vi
-
-
-def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
-             tolerance: float) -> np.ndarray:
-    """Per point, the highest maturity among the keyframes that see it.
-
-    A keyframe sees a world point if it projects into its image in front of
-    the camera and the keyframe's measured depth there agrees (within
-    ``tolerance`` + 3 % of the depth): visible, not occluded.
-    """
-    cov = np.zeros(len(points))
-    for kf, m in zip(keyframes, maturity):
-        if m <= 0:
-            continue
-        seen, _, _ = _seen(points, kf, tolerance)
-        np.maximum(cov, m * seen, out=cov)
-    return cov
-
-
-def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
-                   tolerance: float, logit_channels: int | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
-    backbone embeddings of the keyframes that see it (the visibility test of
-    :func:`coverage`), and how many views were averaged (N,).
-
-    ``logit_channels`` S: average the first S channels as class probabilities
-    (softmax) and return their log, so the entropy of the result is the
-    predictive entropy over the views, which grows where they disagree (a
-    novelty cue no single frame has); None averages every channel as it is.
-
-    This is the multi-view evidence the field is trained on, read directly: until
-    the field has learnt a point, the view's embedding there is the mean over the
-    views of it rather than the one frame's (a per-frame confusion, e.g. a picture
-    called wall from one angle, is outvoted by the others).
-    """
-    S = 0 if logit_channels is None else int(logit_channels)
-    acc = own.astype(np.float32, copy=True)
-    if S:
-        acc[:, :S] = softmax(acc[:, :S])
-    n = np.ones(len(points), np.float32)
-    for kf in keyframes:
-        seen, ui, vi = _seen(points, kf, tolerance)
-        if not seen.any():
-            continue
-        h, w = kf.depth.shape
-        eh, ew = kf.embedding.shape[:2]
-        ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
-        ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
-        emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
-        if S:
-            emb[:, :S] = softmax(emb[:, :S])
-        acc[seen] += emb
-        n[seen] += 1.0
-    acc /= n[:, None]
-    if S:
-        acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
-    return acc, n
 
 
 class MapperStage:
@@ -401,7 +308,7 @@ class MapperStage:
                     self.health.count("skipped_newer")
                 self._latest = job
                 if self.cfg.fallback == "keyframes" and self.cfg.fusion_recent > 0:
-                    self._recent.append(_StoredView(
+                    self._recent.append(StoredView(
                         frame.stamp_ns, frame.pose, frame.intrinsics, frame.depth,
                         np.asarray(record.embedding, np.float16)))
         self.health.set_state("running")

@@ -30,7 +30,8 @@ from ..frame import Frame
 from ..params import param
 from .discovery import DiscoveryStage
 from .embedding import EmbeddingStage
-from .mapping import MapperStage, resize_to
+from .mapping import MapperStage
+from .views import resize_to
 from .records import EmbeddingRecord, LabelsRecord, ViewRecord
 
 

@@ -16,7 +16,7 @@ from ..discovery.geoseg import points_image, segment_depth, surface_normals
 from ..discovery.labeller import Discoverer
 from ..discovery.mcl import markov_cluster
 from ..discovery.metrics import Evaluator
-from ..engine.mapping import resize_to
+from ..engine.views import resize_to
 from ..engine.offline import json_default
 from ..frame import Frame
 from ..uncertainty import entropy as softmax_entropy
