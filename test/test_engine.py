@@ -371,3 +371,18 @@ def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges
         st.set_spec(backbone.spec)
         st.label(view)
         assert (seen[-1] is not None) == wanted
+
+
+def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):
+    """Colour, depth and pose come but no embedding: the stage says which stream it waits
+    for and what to check, instead of rendering nothing in silence."""
+    st = _stage(cfg, queue_size=4)
+    logged = []
+    st.health._log = lambda level, text: logged.append(text)
+    for f in frames[:12]:
+        st.offer("color", f.stamp_ns, f.rgb)
+        st.offer("depth", f.stamp_ns, f.depth)
+        assert st.offer("pose", f.stamp_ns, f.pose) == []
+    assert st.health.problems["starved"] >= 1
+    text = next(t for t in logged if "waiting for" in t)
+    assert text.startswith("waiting for embedding:") and "embedding node runs" in text

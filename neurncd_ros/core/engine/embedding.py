@@ -20,7 +20,7 @@ import numpy as np
 
 from ..params import param
 from ..sync import StampSync
-from .health import Health, sync_reporter
+from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec
 
 
@@ -77,11 +77,8 @@ class EmbeddingStage:
                 self._latest = (stamp, g["color"], g["depth"])
                 got = True
             starved = self.sync.starved()
-        if starved:
-            self.health.problem("starved", f"waiting for {', '.join(starved)}: nothing "
-                                "arrives there while the other images do (check the topic "
-                                "names and that stamps agree within "
-                                f"{self.cfg.sync_tolerance_ms:g} ms)")
+        report_starved(self.health, starved, self.cfg.sync_tolerance_ms,
+                       "images do (check the topic names and that stamps agree")
         return got
 
     def take(self) -> tuple[int, np.ndarray, np.ndarray] | None:

@@ -147,3 +147,11 @@ def sync_reporter(health, names: dict[str, str] | None = None):
         name = (names or {}).get(stream, stream)
         health.problem(f"{reason}", texts[reason].format(s=stamp_ns, n=name))
     return report
+
+
+def report_starved(health, starved: list[str], tolerance_ms: float, check: str) -> None:
+    """Report the streams a :class:`..sync.StampSync` waits for while the others arrive
+    (``StampSync.starved``), with what to ``check``; nothing if none."""
+    if starved:
+        health.problem("starved", f"waiting for {', '.join(starved)}: nothing arrives there "
+                       f"while the other {check} within {tolerance_ms:g} ms)")

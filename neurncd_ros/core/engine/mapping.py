@@ -54,7 +54,7 @@ from ..camera import Intrinsics, backproject, rays
 from ..frame import Frame
 from ..params import param
 from ..sync import StampSync
-from .health import Health, sync_reporter
+from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 from .views import StoredView, coverage, fuse_keyframes, resize_to
 
@@ -252,12 +252,9 @@ class MapperStage:
         completed that were admitted and queued for rendering."""
         with self._lock:
             groups = self.sync.add(stream, stamp_ns, value)
-        starved = self.sync.starved()
-        if starved:
-            self.health.problem("starved", f"waiting for {', '.join(starved)}: nothing "
-                                "arrives there while the other inputs do (check the topic "
-                                "names, that the embedding node runs, and that stamps agree "
-                                f"within {self.cfg.sync_tolerance_ms:g} ms)")
+        report_starved(self.health, self.sync.starved(), self.cfg.sync_tolerance_ms,
+                       "inputs do (check the topic names, that the embedding node runs, "
+                       "and that stamps agree")
         queued = []
         for stamp, g in groups:
             self.health.count("frames_paired")
