@@ -113,3 +113,17 @@ def test_bad_input_gives_a_clear_error(bag, tmp_path):
     data.write_bytes(data.read_bytes()[: data.stat().st_size // 3])
     with pytest.raises(ValueError, match="truncated|corrupt|not a readable"):
         evaluate.evaluate_bag(cut, cfg)
+
+
+def test_a_target_met_against_an_undertrained_baseline_carries_a_caveat():
+    from neurncd_ros.core.eval import targets
+
+    agg = {"full": {k: {"mean": 80.0} for k in evaluate.FIGURES},
+           "semnerf_1pct": {k: {"mean": 20.0} for k in evaluate.FIGURES}}
+    bags = [{"iterations": 59, "keyframes": 30,
+             "semnerf": {"semnerf_1pct": {"label_fit": 0.62, "labels_per_keyframe": 768}}}]
+    sn = targets.check(agg, bags)[3]
+    assert sn["met"] is True and "62-62 %" in sn["caveat"] and "59 iterations" in sn["caveat"]
+    assert "Caveat: the Semantic-NeRF fields" in targets.lines([sn])[0]
+    bags[0]["semnerf"]["semnerf_1pct"]["label_fit"] = 0.98  # a field that holds its labels
+    assert targets.check(agg, bags)[3]["caveat"] == ""
