@@ -13,6 +13,11 @@ targets and the shortfalls are checked by ``core.eval.targets`` (the same code a
     .venv/bin/python bench/eval.py --workers 1   # 8 test scenes
     .venv/bin/python bench/eval.py --quick       # 2 short scenes (smoke)
     .venv/bin/python bench/eval.py --workers 1 --cache /tmp/eval_cache  # resumable
+    .venv/bin/python bench/eval.py --scenes 2 --set run.training_rate_hz=60 --name eval_rate60
+
+``--set`` changes a parameter for every row (both the engine and the baselines'
+fields see it; e.g. a longer training schedule); such a run should get its own
+``--name``, which names the JSON, its folder and its HTML page in bench/results.
 
 With ``--cache DIR`` each scene's result is kept in DIR (keyed by seed, frames and
 commit) and reused by the next run at the same commit: a run stopped part way
@@ -57,14 +62,31 @@ KEYS = {  # issue key -> (row, figure)
 }
 
 
+def _config(overrides: tuple[str, ...]) -> config.Config:
+    """The default configuration with ``SECTION.KEY=VALUE`` overrides (YAML values)."""
+    import yaml
+    pairs = []
+    for item in overrides:
+        if "=" not in item:
+            raise SystemExit(f"--set {item!r}: expected SECTION.KEY=VALUE")
+        key, value = item.split("=", 1)
+        pairs.append((key, yaml.safe_load(value)))
+    try:
+        return config.load(None, dict(pairs)) if pairs else config.default()
+    except config.ConfigError as err:
+        raise SystemExit(f"--set: {err}") from None
+
+
 def _scene(job: tuple) -> dict:
-    seed, frames, cache = job
-    path = Path(cache) / f"{seed}-{frames}-{commit()}.pkl" if cache else None
+    seed, frames, cache, overrides = job
+    tag = "-".join(o.replace("=", "_").replace("/", "_") for o in overrides)
+    name = f"{seed}-{frames}-{commit()}" + (f"-{tag}" if tag else "")
+    path = Path(cache) / f"{name}.pkl" if cache else None
     if path is not None and path.is_file():
         return pickle.loads(path.read_bytes())
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    cfg = config.default()
+    cfg = _config(overrides)
     out = evaluate.evaluate_frames(synth.generate(seed, frames, cfg.synth), cfg, frames,
                                    progress=False, keep_pictures=1,
                                    name=f"synthetic seed {seed}")
@@ -82,19 +104,27 @@ def main() -> None:
                     help="frames per scene (300 = 10 s, the demo's length)")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cache", default="", help="keep and reuse each scene's result here")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override a parameter for every row (repeatable)")
+    ap.add_argument("--name", default="eval",
+                    help="results name: bench/results/NAME.json, NAME/ and NAME.html")
     args = ap.parse_args()
+    if args.set and args.name == "eval":
+        raise SystemExit("--set changes the configuration: give the run its own --name "
+                         "(eval.json holds the default configuration)")
+    _config(tuple(args.set))  # a bad override fails here, before any scene runs
     n, frames = (2, 40) if args.quick else (args.scenes, args.frames)
     test = list(seeds.TEST[:n])
     t0 = time.perf_counter()
     from tqdm import tqdm
-    jobs = [(s, frames, args.cache) for s in test]
+    jobs = [(s, frames, args.cache, tuple(args.set)) for s in test]
     if args.workers > 1:
         import multiprocessing as mp
         with mp.get_context("fork").Pool(args.workers) as pool:
             per = list(tqdm(pool.imap(_scene, jobs), total=len(jobs), desc="scenes"))
     else:
         per = [_scene(j) for j in tqdm(jobs, desc="scenes")]
-    out_dir = RESULTS / "eval"
+    out_dir = RESULTS / args.name
     result = evaluate.write_eval(out_dir, per)
     agg = result["aggregate"]
     res: dict = {k: {"mean": agg[r][f]["mean"], "std": agg[r][f]["std"]}
@@ -110,11 +140,12 @@ def main() -> None:
                 "commit": commit(), "rows": {r: {f: agg[r][f] for f in evaluate.FIGURES}
                                               for r in agg}})
     res["semnerf"] = semnerf_facts
+    res["set"] = list(args.set)
     res["targets"] = result["targets"]
     res["shortfalls"] = [x for t, x in zip(result["targets"], targets.lines(result["targets"]))
                          if t["met"] is not True or t.get("caveat")]
-    (RESULTS / "eval.json").write_text(json.dumps(res, indent=1, sort_keys=True))
-    report.render(out_dir, RESULTS / "eval.html")
+    (RESULTS / f"{args.name}.json").write_text(json.dumps(res, indent=1, sort_keys=True))
+    report.render(out_dir, RESULTS / f"{args.name}.html")
     (out_dir / "pictures.npz").unlink()  # inlined in eval.html; not kept in the repository
     print((out_dir / "tables.md").read_text())
     for k, v in res.items():
@@ -122,7 +153,8 @@ def main() -> None:
             print(f"{k:28s} {v['mean'] if v['mean'] is None else round(v['mean'], 1)} "
                   f"± {v['std'] if v['std'] is None else round(v['std'], 1)}")
     print("\n".join(targets.lines(result["targets"])))
-    print(f"wrote {RESULTS / 'eval.json'}, eval.html, eval/ in {res['seconds']} s")
+    print(f"wrote {RESULTS / args.name}.json, {args.name}.html, {args.name}/ in "
+          f"{res['seconds']} s")
 
 
 if __name__ == "__main__":
