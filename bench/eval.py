@@ -64,17 +64,11 @@ KEYS = {  # issue key -> (row, figure)
 
 def _config(overrides: tuple[str, ...]) -> config.Config:
     """The default configuration with ``SECTION.KEY=VALUE`` overrides (YAML values)."""
-    import yaml
-    pairs = []
-    for item in overrides:
-        if "=" not in item:
-            raise SystemExit(f"--set {item!r}: expected SECTION.KEY=VALUE")
-        key, value = item.split("=", 1)
-        pairs.append((key, yaml.safe_load(value)))
     try:
-        return config.load(None, dict(pairs)) if pairs else config.default()
+        return (config.load(None, config.parse_overrides(list(overrides))) if overrides
+                else config.default())
     except config.ConfigError as err:
-        raise SystemExit(f"--set: {err}") from None
+        raise SystemExit(f"bench/eval.py: {err}") from None
 
 
 def _scene(job: tuple) -> dict:

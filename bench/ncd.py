@@ -404,9 +404,7 @@ def main() -> None:
     frames = 45 if args.quick else args.frames
     n_test = 2 if args.quick else args.test_scenes
     n_tune = 2 if args.quick else args.tune_scenes
-    import yaml
-    base = config.load(None, {k: yaml.safe_load(v) for k, v in
-                              (s.split("=", 1) for s in args.set)})
+    base = config.load(None, config.parse_overrides(args.set))
     res: dict = {"frames_per_scene": frames, "quick": bool(args.quick),
                  "test_seeds": list(seeds.TEST[:n_test])}
 

@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import yaml
 
 from . import config as config_mod
 from .core.params import ConfigError
@@ -20,20 +19,10 @@ from .core.params import ConfigError
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _overrides(pairs: list[str] | None) -> dict:
-    """``--set section.key=value`` pairs (values parsed as YAML scalars/lists)."""
-    out = {}
-    for pair in pairs or []:
-        if "=" not in pair:
-            raise ConfigError(f"--set {pair!r}: expected section.key=value")
-        key, raw = pair.split("=", 1)
-        out[key.strip()] = yaml.safe_load(raw)
-    return out
-
-
 def load_config(args: argparse.Namespace) -> config_mod.Config:
     """The configuration a subcommand runs with: ``--config`` file, then ``--set`` overrides."""
-    return config_mod.load(getattr(args, "config", None), _overrides(getattr(args, "set", None)))
+    return config_mod.load(getattr(args, "config", None),
+                           config_mod.parse_overrides(getattr(args, "set", None)))
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -102,7 +91,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     from .core.params import to_dict
 
     cfg = load_config(args)
-    opts = _overrides(args.opt)
+    opts = config_mod.parse_overrides(args.opt, "--opt")
     folder_opts = {k: v for k, v in to_dict(cfg.convert).items()
                    if v != getattr(formats.FolderConfig(), k)}
     t0 = time.perf_counter()

@@ -248,6 +248,18 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
     return merged
 
 
+def parse_overrides(pairs: list[str] | None, option: str = "--set") -> dict[str, Any]:
+    """``section.key=value`` strings (as from ``--set``) -> {dotted key: value}, each value
+    parsed as YAML (a scalar or a list); a pair without "=" is a ConfigError naming it."""
+    out = {}
+    for pair in pairs or []:
+        if "=" not in pair:
+            raise ConfigError(f"{option} {pair!r}: expected section.key=value")
+        key, raw = pair.split("=", 1)
+        out[key.strip()] = yaml.safe_load(raw)
+    return out
+
+
 def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
     """Read and validate a parameter file (default: the shipped config/neurncd.yaml).
 
