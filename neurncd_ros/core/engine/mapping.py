@@ -361,39 +361,35 @@ class MapperStage:
         gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
         return [kfs[i] for i in np.argsort(gap, kind="stable")[: self.cfg.coverage_keyframes]]
 
-    def field_weight(self, frame: Frame, height: int, width: int) -> np.ndarray:
-        """(height, width) weight of the field against the backbone (see module doc)."""
-        kfs = self._nearest_keyframes(frame)
+    def field_weight(self, kfs: list, points: np.ndarray | None, mask: np.ndarray | None,
+                     height: int, width: int) -> np.ndarray:
+        """(height, width) weight of the field against the backbone (see module doc), from
+        the view's nearest keyframes ``kfs`` and its back-projected depth ``points`` at
+        the ``mask`` pixels."""
         maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
                              for k in kfs])
         if not np.any(maturity > 0):
             return np.zeros((height, width), np.float32)
-        intr = frame.intrinsics.scaled(width, height)
-        depth = resize_to(frame.depth, height, width, cv2.INTER_NEAREST)
-        pts, mask = backproject(depth, intr, frame.pose)
-        cov = coverage(pts, kfs, maturity, self.cfg.coverage_depth_tolerance)
+        cov = coverage(points, kfs, maturity, self.cfg.coverage_depth_tolerance)
         w = np.clip(cov / self.cfg.full_coverage, 0.0, 1.0).astype(np.float32)
         out = np.full((height, width), float(w.mean()) if w.size else 0.0, np.float32)
         out[mask] = w
         return out
 
-    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, logit_channels: int
-                      ) -> np.ndarray:
+    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, kfs: list,
+                      points: np.ndarray | None, mask: np.ndarray | None,
+                      logit_channels: int) -> np.ndarray:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
-        stored embeddings of the nearest keyframes that see it (:func:`fuse_keyframes`);
-        pixels without depth keep the frame's own."""
-        h, w = backbone.shape[:2]
-        kfs = self._nearest_keyframes(frame)
+        stored embeddings of the nearest keyframes ``kfs`` (and the recent frames) that see
+        it (:func:`fuse_keyframes`); pixels without depth keep the frame's own."""
         if self.cfg.fusion_recent > 0:
             with self._lock:
-                kfs += [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
+                kfs = kfs + [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
         if not kfs:
             return backbone
-        depth = resize_to(frame.depth, h, w, cv2.INTER_NEAREST)
-        pts, mask = backproject(depth, frame.intrinsics.scaled(w, h), frame.pose)
         out = backbone.copy()
         out[mask], _ = fuse_keyframes(
-            pts, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
+            points, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
             logit_channels if self.cfg.fusion == "probabilities" else None)
         return out
 
@@ -408,19 +404,25 @@ class MapperStage:
         s = self.cfg.render_scale
         h, w = max(1, round(f.intrinsics.height * s)), max(1, round(f.intrinsics.width * s))
         backbone = resize_to(job.embedding.embedding.astype(np.float32), h, w)
-        weight = (self.field_weight(f, h, w) if self.cfg.fallback != "none"
+        # The view's geometry, once for the coverage, the fusion and the rays.
+        intr = f.intrinsics.scaled(w, h)
+        depth = resize_to(f.depth, h, w, cv2.INTER_NEAREST)
+        kfs = self._nearest_keyframes(f) if self.cfg.fallback != "none" else []
+        fuse = self.cfg.fallback == "keyframes"
+        points, mask = (backproject(depth, intr, f.pose)
+                        if kfs or (fuse and self.cfg.fusion_recent > 0) else (None, None))
+        weight = (self.field_weight(kfs, points, mask, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
-        if self.cfg.fallback == "keyframes":
-            backbone = self.keyframe_fill(f, backbone, spec.logit_channels)
+        if fuse:
+            backbone = self.keyframe_fill(f, backbone, kfs, points, mask, spec.logit_channels)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
         sel = weight > 0.0
         if sel.any():  # render only where the field has learnt enough to count
             v, u = np.nonzero(sel)
-            intr = f.intrinsics.scaled(w, h)
             origins, dirs = rays(f.pose, intr, u, v)
-            z = resize_to(f.depth, h, w, cv2.INTER_NEAREST)[v, u]
+            z = depth[v, u]
             # The field pauses its training while it renders (mapper.yield_to_render) and
             # checks ``cancel`` between chunks (a node stops promptly even mid-render).
             field = mapper.render_rays(origins, dirs, z, cancel=cancel)["embedding"]
