@@ -26,6 +26,10 @@ NUM_KNOWN = len(KNOWN_IDS)
 # Backbone channel k (0-based) predicts NYU-13 id KNOWN_IDS[k].
 CHANNEL_TO_ID = np.array(KNOWN_IDS, dtype=np.uint16)
 ID_TO_CHANNEL = {cid: k for k, cid in enumerate(KNOWN_IDS)}
+# The same as a lookup table over every uint16 label value: the known channel, -1 for
+# void, the novel classes and anything else.
+KNOWN_CHANNEL = np.full(65536, -1, dtype=np.int16)
+KNOWN_CHANNEL[list(KNOWN_IDS)] = np.arange(NUM_KNOWN)
 
 _NYU40_TO_13 = {
     "bed": [4], "books": [23], "ceiling": [22], "chair": [5], "floor": [2, 20],

@@ -44,9 +44,8 @@ IGNORE = 255
 """Target value of pixels left out of the loss (void and novel classes)."""
 
 # NYU-13 id -> training target (channel index for known classes, IGNORE otherwise).
-_ID_TO_TARGET = np.full(65536, IGNORE, dtype=np.uint8)
-for _cid, _k in classes.ID_TO_CHANNEL.items():
-    _ID_TO_TARGET[_cid] = _k
+_ID_TO_TARGET = np.where(classes.KNOWN_CHANNEL >= 0, classes.KNOWN_CHANNEL,
+                         IGNORE).astype(np.uint8)
 
 
 def semantic_to_target(semantic: np.ndarray) -> np.ndarray:

@@ -78,12 +78,8 @@ def row_title(key: str) -> str:
     return f"Semantic-NeRF {key[len(ROW_PREFIX):-3].replace('p', '.')}%"
 
 
-_CHANNEL = np.full(classes.NUM_CLASSES + 1, -1, np.int16)
-_CHANNEL[list(classes.KNOWN_IDS)] = np.arange(classes.NUM_KNOWN)
-
-
 def draw_labels(semantic: np.ndarray, fraction, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) int16: the known-class channel (``classes.ID_TO_CHANNEL``) at the drawn
+    """(H, W) int16: the known-class channel (``classes.KNOWN_CHANNEL``) at the drawn
     pixels, -1 elsewhere; round(fraction * H * W) pixels among the known-class ones."""
     f = check_fraction(fraction)
     sem = np.asarray(semantic)
@@ -96,7 +92,7 @@ def draw_labels(semantic: np.ndarray, fraction, rng: np.random.Generator) -> np.
     out = np.full(flat.size, -1, np.int16)
     if n:
         pick = rng.choice(candidates, size=n, replace=False)
-        out[pick] = _CHANNEL[flat[pick]]
+        out[pick] = classes.KNOWN_CHANNEL[flat[pick]]
     return out.reshape(sem.shape)
 
 
