@@ -26,6 +26,8 @@ the report gives the mean over scenes. Rows of the report (percent):
   (``modulation.colour_weight`` 0);
 - ``no_mode_split``: no splitting of small, distant clusters of a known class
   into novel ones (``discovery.mode_split`` off);
+- ``no_novel_merge``: novel clusters never share an id (``discovery.novel_merge_distance``
+  0), each Markov cluster its own novel class;
 - ``no_colour_no_split``: both off (the descriptor and decision before issue 11);
 - ``backbone``: the backbone's argmax alone (knows no novel class);
 - ``fallback_backbone``: the mapper stage blending in the frame's own backbone
@@ -44,6 +46,8 @@ backbone | NeurNCD | entropy for a few test frames).
     .venv/bin/python bench/ncd.py                # report on 8 test scenes
     .venv/bin/python bench/ncd.py --tune         # coordinate search first
     .venv/bin/python bench/ncd.py --quick        # 2 + 2 short scenes (smoke)
+    .venv/bin/python bench/ncd.py --sweep discovery.novel_merge_distance=0,0.2,0.4
+                                                 # one parameter on the tuning scenes
 """
 
 from __future__ import annotations
@@ -297,6 +301,7 @@ GRID = {
     "segmentation.embedding_edge_threshold": [0.2, 0.3, 0.4],
     "segmentation.colour_edge_threshold": [12.0, 18.0, 25.0],
     "discovery.segment_novelty": [False, True],
+    "discovery.novel_merge_distance": [0.0, 0.2, 0.4, 0.6],
 }
 
 
@@ -372,6 +377,32 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
     return out
 
 
+def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: int) -> None:
+    """``--sweep key=v1,v2,...``: the discovery scores of each value on the tuning scenes,
+    a table on stdout and bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
+    key, raw = args.sweep.split("=", 1)
+    values = [config.parse_overrides([f"{key}={v}"])[key] for v in raw.split(",")]
+    scenes = prepare(base, seeds.TUNE[:n_tune], frames, args.workers)
+    rows = []
+    for v in tqdm(values, desc=f"sweep {key}"):
+        r = discover(scenes, with_overrides(base, {key: v}), workers=args.workers)
+        rows.append({"value": v, **{k: r[k] for k in (
+            "miou_all", "miou_known", "miou_novel", "std_miou_all", "novel_id_stability",
+            "novel_id_stability_found", "novel_classes_matched")}})
+    out = {"param": key, "tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
+           "set": args.set, "rows": rows, "commit": commit()}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"ncd_sweep_{key.split('.')[-1]}.json"
+    path.write_text(json.dumps(out, indent=1))
+    print(f"{key} on tuning seeds {out['tune_seeds']} ({frames} frames each), percent")
+    print(f"{'value':>10s} {'all':>7s} {'known':>7s} {'novel':>7s} {'id stab':>8s} {'found':>7s}")
+    for r in rows:
+        print(f"{str(r['value']):>10s} {r['miou_all']:7.2f} {r['miou_known']:7.2f} "
+              f"{r['miou_novel']:7.2f} {r['novel_id_stability']:8.3f} "
+              f"{r['novel_id_stability_found']:7.3f}")
+    print(f"wrote {path}")
+
+
 def picture(rows: list, path: Path) -> None:
     tiles = []
     for rgb, gt, bb_ids, lab, ent in rows:
@@ -398,6 +429,9 @@ def main() -> None:
                     help="processes rendering uncached scenes (one torch thread each)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="override a parameter (YAML value) for every row")
+    ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
+                    help="only score one discovery parameter over these values on the tuning "
+                         "scenes (bench/results/ncd_sweep_<key>.json), then stop")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -420,6 +454,10 @@ def main() -> None:
         print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
         for i, row in enumerate(diag["per_scene"]):
             print(diag["tune_seeds"][i], json.dumps(row))
+        return
+
+    if args.sweep:
+        sweep(args, base, frames, n_tune)
         return
 
     t0 = time.perf_counter()
@@ -456,6 +494,8 @@ def main() -> None:
         "no_colour_descriptor": (with_overrides(base, {"modulation.colour_weight": 0.0}),
                                  "rendered"),
         "no_mode_split": (with_overrides(base, {"discovery.mode_split": False}), "rendered"),
+        "no_novel_merge": (with_overrides(base, {"discovery.novel_merge_distance": 0.0}),
+                           "rendered"),
         "no_colour_no_split": (with_overrides(base, {"modulation.colour_weight": 0.0,
                                                      "discovery.mode_split": False}),
                                "rendered"),

@@ -335,3 +335,29 @@ def test_colour_stats_and_bad_colour():
         segment_stats(seg, emb, ent, colour=rgb[:10])
     with pytest.raises(ValueError, match="uint8"):
         segment_stats(seg, emb, ent, colour=rgb.astype(np.float32))
+
+
+def test_novel_clusters_close_in_descriptor_space_share_one_id():
+    """Markov clustering may split one novel object into clusters (here A's two
+    segments, split by hand); with novel_merge_distance they are one novel class,
+    while the distinct novel object B keeps an id of its own; 0 turns it off."""
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+
+    def named(distance):
+        d = _discoverer(min_cluster_segments=1, novel_merge_distance=distance)
+        d.process_segments(seg, emb, ent)
+        mem = d._mem
+        seg_of = {int(u): i for i, u in enumerate(mem.uid)}  # one frame: uid = segment id
+        clusters = np.array([{0: 0, 1: 1, 2: 2, 3: 3, 4: 4, 5: 4, 6: 5}[int(u)]
+                             for u in mem.uid])
+        lab = d.name_clusters(clusters)
+        return {kind: {int(lab[seg_of[i]]) for i, (k, _) in enumerate(LAYOUT) if k == kind}
+                for kind in ("A", "B")}, d
+
+    merged, d = named(0.4)
+    a_desc = d._mem.desc[[1, 2]]
+    assert np.linalg.norm(a_desc[0] - a_desc[1]) < 0.4  # A's segments are alike ...
+    assert len(merged["A"]) == 1 and len(merged["B"]) == 1  # ... so one id for A
+    assert merged["A"] != merged["B"] and min(merged["A"] | merged["B"]) >= NOVEL_ID_START
+    apart, _ = named(0.0)
+    assert len(apart["A"]) == 2 and apart["A"].isdisjoint(apart["B"])

@@ -34,7 +34,15 @@ Per processed frame (:meth:`Discoverer.process`):
    overlap of their member segments (Hungarian on overlap counts, accepted if
    the overlap is at least ``match_overlap`` of the smaller of the two member
    sets still in memory); unmatched clusters get fresh ids; ids are never
-   reused. Cluster numbering therefore never influences ids.
+   reused. Cluster numbering therefore never influences ids. Before the
+   matching, novel clusters whose pixel-weighted mean descriptors lie within
+   ``novel_merge_distance`` of each other (single link) are one novel class
+   with one id: Markov clustering often splits one object into several clusters
+   (its views differ in colour and entropy), and each would otherwise get an id
+   of its own, so the object's pixels would flip between ids from frame to
+   frame. Different novel classes lie further apart than that (chosen on the
+   tuning seeds: 0.3-0.5 score alike, 0.6 merges classes;
+   bench/results/ncd_sweep_novel_merge_distance.json).
 
 Defaults (``entropy_threshold`` 0.15, ``min_cluster_segments`` 1,
 ``segment_novelty`` on; with mcl's and modulation's) were chosen by
@@ -102,6 +110,10 @@ class DiscoveryConfig:
                                        lo=0.0, hi=100.0)
     match_overlap: float = param(0.3, "share of shared member segments to keep a novel id",
                                  lo=0.0, hi=1.0)
+    novel_merge_distance: float = param(0.4, "novel clusters whose pixel-weighted mean "
+                                        "descriptors are closer than this (Euclidean, single "
+                                        "link) share one novel id (one object that Markov "
+                                        "clustering split; 0 = off)", lo=0.0, hi=100.0)
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
 
 
@@ -295,9 +307,32 @@ class Discoverer:
         cluster_label = np.full(m, UNDECIDED, np.int64)
         cluster_label[known] = self.channel_to_id[hist[known].argmax(axis=1)]
         novel_idx = np.flatnonzero(novel)
-        ids = self._match_novel([mem.uid[clusters == c] for c in novel_idx])
-        cluster_label[novel_idx] = ids
+        group = self._novel_groups(clusters, novel_idx, pix)
+        ids = self._match_novel([mem.uid[np.isin(clusters, novel_idx[group == g])]
+                                 for g in range(int(group.max()) + 1 if group.size else 0)])
+        cluster_label[novel_idx] = ids[group]
         return cluster_label[clusters]
+
+    def _novel_groups(self, clusters: np.ndarray, novel_idx: np.ndarray, pix: np.ndarray
+                      ) -> np.ndarray:
+        """(len(novel_idx),) group number 0..g-1 per novel cluster: the connected
+        components of "mean descriptors closer than ``novel_merge_distance``" (each
+        cluster its own group when the distance is 0)."""
+        k = novel_idx.size
+        if k < 2 or self.cfg.novel_merge_distance <= 0:
+            return np.arange(k, dtype=np.int64)
+        from scipy.sparse.csgraph import connected_components
+
+        mem = self._mem
+        pos = np.full(int(clusters.max()) + 1, -1, np.int64)
+        pos[novel_idx] = np.arange(k)
+        sel = pos[clusters] >= 0
+        cent = np.zeros((k, mem.desc.shape[1]))
+        np.add.at(cent, pos[clusters[sel]], mem.desc[sel] * mem.pixels[sel, None])
+        cent /= np.maximum(pix[novel_idx], 1)[:, None]
+        near = np.linalg.norm(cent[:, None] - cent[None], axis=2) < self.cfg.novel_merge_distance
+        _, group = connected_components(near, directed=False)
+        return group.astype(np.int64)
 
     def _distinct_modes(self, clusters: np.ndarray, known: np.ndarray, channel: np.ndarray,
                         pix: np.ndarray, m: int) -> np.ndarray:
