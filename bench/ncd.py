@@ -377,6 +377,12 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
     return out
 
 
+def _slug(pairs: list[str]) -> str:
+    """File name part for ``--set`` pairs, e.g. ``_fallback-keyframes``."""
+    return "".join("_" + v.split("=", 1)[0].split(".")[-1] + "-" + v.split("=", 1)[1]
+                   for v in pairs)
+
+
 def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: int) -> None:
     """``--sweep key=v1,v2,...``: the discovery scores of each value on the tuning scenes,
     a table on stdout and bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
@@ -392,7 +398,7 @@ def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: in
     out = {"param": key, "tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
            "set": args.set, "rows": rows, "commit": commit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"ncd_sweep_{key.split('.')[-1]}.json"
+    path = RESULTS / f"ncd_sweep_{key.split('.')[-1]}{_slug(args.set)}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"{key} on tuning seeds {out['tune_seeds']} ({frames} frames each), percent")
     print(f"{'value':>10s} {'all':>7s} {'known':>7s} {'novel':>7s} {'id stab':>8s} {'found':>7s}")
@@ -431,7 +437,7 @@ def main() -> None:
                     help="override a parameter (YAML value) for every row")
     ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
                     help="only score one discovery parameter over these values on the tuning "
-                         "scenes (bench/results/ncd_sweep_<key>.json), then stop")
+                         "scenes (bench/results/ncd_sweep_<key>[_<set>].json), then stop")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -448,9 +454,7 @@ def main() -> None:
                 "set": args.set, **diagnose(tune_scenes, base, args.workers),
                 "commit": commit()}
         RESULTS.mkdir(parents=True, exist_ok=True)
-        slug = "".join("_" + v.split("=", 1)[0].split(".")[-1] + "-" + v.split("=", 1)[1]
-                       for v in args.set)  # e.g. _fallback-keyframes
-        (RESULTS / f"ncd_diagnosis{slug}.json").write_text(json.dumps(diag, indent=1))
+        (RESULTS / f"ncd_diagnosis{_slug(args.set)}.json").write_text(json.dumps(diag, indent=1))
         print(json.dumps({k: v for k, v in diag.items() if k != "per_scene"}, indent=1))
         for i, row in enumerate(diag["per_scene"]):
             print(diag["tune_seeds"][i], json.dumps(row))
