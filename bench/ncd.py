@@ -33,8 +33,10 @@ the report gives the mean over scenes. Rows of the report (percent):
 - ``fallback_backbone``: the mapper stage blending in the frame's own backbone
   embedding where the field has not learnt the scene (``mapper_node.fallback``
   backbone, before issue 11) instead of the keyframe fusion; ``fusion_logits``:
-  the keyframe fusion averaging logits instead of class probabilities (these
-  rows render the scenes again);
+  the keyframe fusion averaging logits instead of class probabilities;
+  ``disagreement_2``: the views' disagreement added twice to the view's entropy
+  (``mapper_node.disagreement_weight`` 2, off by default) (these rows render the
+  scenes again);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -287,6 +289,8 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
     other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
     if base.mapper_node.fallback == "keyframes":
         rows[f"fusion_{other}"] = {"mapper_node.fusion": other}
+        if base.mapper_node.fusion == "probabilities" and base.mapper_node.disagreement_weight == 0:
+            rows["disagreement_2"] = {"mapper_node.disagreement_weight": 2.0}
     return rows
 
 

@@ -172,7 +172,7 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     own = np.zeros((3, 2), np.float32)
     # The first keyframe sees the wall at 2 m; the second sees it from 10 cm to the side;
     # the third measured 1 m there: something in front, so the point is occluded for it.
-    fused, n = fuse_keyframes(points, own, [kf(2.0, 3.0), kf(2.0, 6.0, x=0.1),
+    fused, n, _ = fuse_keyframes(points, own, [kf(2.0, 3.0), kf(2.0, 6.0, x=0.1),
                                             kf(1.0, 100.0)], tolerance=0.05)
     assert n.tolist() == [3.0, 1.0, 1.0]  # the far and the off-image points: own view only
     assert np.allclose(fused[0], (0.0 + 3.0 + 6.0) / 3) and np.allclose(fused[1:], 0.0)
@@ -180,8 +180,26 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     # the mean (5/8, 3/8) comes back as log-probabilities.
     other = kf(2.0, 0.0)
     other.embedding[..., 0] = np.log(3.0)
-    fused, n = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2)
+    fused, n, h_views = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2)
     assert n.tolist() == [2.0] and np.allclose(fused, np.log([[5 / 8, 3 / 8]]), atol=1e-3)
+    # The views' own entropies: ln 2 and H(3/4, 1/4); their mean lies below the entropy of
+    # the mean (5/8, 3/8): the gap is the views' disagreement.
+    h = lambda p: -sum(x * np.log(x) for x in p)  # noqa: E731
+    assert np.allclose(h_views, [(np.log(2) + h((0.75, 0.25))) / 2], atol=1e-4)
+    assert h((5 / 8, 3 / 8)) - h_views[0] > 0.03
+
+
+def test_disagreement_weight_adds_the_views_disagreement_to_the_entropy(cfg, backbone, frames):
+    plain = _stage(cfg, fallback="keyframes", render_scale=0.5)
+    extra = _stage(cfg, fallback="keyframes", render_scale=0.5, disagreement_weight=3.0)
+    for st in (plain, extra):
+        jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+    a, b = plain.render_view(jobs[-1]), extra.render_view(jobs[-1])
+    assert np.array_equal(a.embedding, b.embedding)  # the embedding is the same fusion
+    assert np.allclose(a.entropy, uncertainty.entropy(a.embedding), atol=1e-5)
+    gain = b.entropy - a.entropy
+    assert gain.min() >= -1e-6 and (gain > 1e-3).mean() > 0.01  # higher where views differ
+    assert b.entropy.max() <= np.log(a.embedding.shape[-1]) + 1e-6
 
 
 def test_keyframe_fallback_fuses_the_stored_views_before_the_field_has_learnt(cfg, backbone,

@@ -99,6 +99,11 @@ class MapperNodeConfig:
                         "class probabilities ('probabilities': the view's entropy is then the "
                         "predictive entropy over the views, higher where they disagree)",
                         choices=("logits", "probabilities"))
+    disagreement_weight: float = param(0.0, "fallback keyframes, fusion probabilities: add this "
+                                       "times the views' disagreement (entropy of their mean "
+                                       "minus their mean entropy) to the view's entropy, so "
+                                       "points the views call differently look more novel "
+                                       "(0 = the predictive entropy alone)", lo=0.0, hi=100.0)
     fusion_recent: int = param(0, "fallback keyframes: also fuse this many of the most "
                                "recent frames that were not admitted as keyframes (their depth, "
                                "pose and backbone embedding are held for it; 0 = keyframes only)",
@@ -378,20 +383,25 @@ class MapperStage:
 
     def keyframe_fill(self, frame: Frame, backbone: np.ndarray, kfs: list,
                       points: np.ndarray | None, mask: np.ndarray | None,
-                      logit_channels: int) -> np.ndarray:
+                      logit_channels: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
         stored embeddings of the nearest keyframes ``kfs`` (and the recent frames) that see
-        it (:func:`fuse_keyframes`); pixels without depth keep the frame's own."""
+        it (:func:`fuse_keyframes`); pixels without depth keep the frame's own. Also the
+        (h, w) mean of the views' own entropies (fusion probabilities; None otherwise)."""
         if self.cfg.fusion_recent > 0:
             with self._lock:
                 kfs = kfs + [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
         if not kfs:
-            return backbone
+            return backbone, None
         out = backbone.copy()
-        out[mask], _ = fuse_keyframes(
+        out[mask], _, h_views = fuse_keyframes(
             points, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
             logit_channels if self.cfg.fusion == "probabilities" else None)
-        return out
+        if h_views is None:
+            return out, None
+        mean_h = np.full(backbone.shape[:2], np.nan, np.float32)
+        mean_h[mask] = h_views
+        return out, mean_h
 
     def render_view(self, job: ViewJob, cancel: threading.Event | None = None) -> ViewRecord:
         """Render the job's frame at its pose and measured depth where the field has learnt
@@ -413,8 +423,10 @@ class MapperStage:
                         if kfs or (fuse and self.cfg.fusion_recent > 0) else (None, None))
         weight = (self.field_weight(kfs, points, mask, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
+        mean_h = None
         if fuse:
-            backbone = self.keyframe_fill(f, backbone, kfs, points, mask, spec.logit_channels)
+            backbone, mean_h = self.keyframe_fill(f, backbone, kfs, points, mask,
+                                                  spec.logit_channels)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)
@@ -430,6 +442,11 @@ class MapperStage:
             emb[sel] = wt * field + (1.0 - wt) * backbone[sel]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])
+        if mean_h is not None and self.cfg.disagreement_weight > 0:
+            # The views' disagreement where the keyframes filled in (not where the field did).
+            gap = np.nan_to_num(np.maximum(ent - mean_h, 0.0)) * (1.0 - weight)
+            ent = np.minimum(ent + self.cfg.disagreement_weight * gap,
+                             np.log(spec.logit_channels)).astype(np.float32)
         self.health.count("views")
         self.health.count("views_keyframe" if job.keyframe else "views_frame")
         self.health.gauge("iterations", iterations)

@@ -125,7 +125,9 @@ class ViewRecord:
 
     - ``frame``: colour, depth, pose and intrinsics of the rendered view (full size);
     - ``embedding``: (h, w, C) rendered embedding, ``entropy``: (h, w) entropy of
-      the softmax of its logit channels, at the render resolution (``render_scale``);
+      the softmax of its logit channels (plus ``mapper_node.disagreement_weight``
+      times the fused views' disagreement, when set), at the render resolution
+      (``render_scale``);
     - ``field_share``: share of pixels taken from the field rather than the backbone;
     - ``keyframe``: the frame was admitted as a keyframe;
     - ``iterations``: field training iterations when it was rendered.

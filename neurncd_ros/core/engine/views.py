@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from ..camera import Intrinsics, project
-from ..uncertainty import softmax
+from ..uncertainty import entropy, softmax
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,10 +73,13 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
-    :func:`coverage`), and how many views were averaged (N,).
+    :func:`coverage`), how many views were averaged (N,), and (with
+    ``logit_channels``) the mean of the views' own entropies (N,) (None without):
+    the entropy of the mean minus this mean is the views' disagreement (their
+    mutual information), zero where every view says the same.
 
     ``logit_channels`` S: average the first S channels as class probabilities
     (softmax) and return their log, so the entropy of the result is the
@@ -90,7 +93,9 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     """
     S = 0 if logit_channels is None else int(logit_channels)
     acc = own.astype(np.float32, copy=True)
+    h_sum = None
     if S:
+        h_sum = entropy(acc[:, :S]).astype(np.float64)
         acc[:, :S] = softmax(acc[:, :S])
     n = np.ones(len(points), np.float32)
     for kf in keyframes:
@@ -103,10 +108,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
         ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
         emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
         if S:
+            h_sum[seen] += entropy(emb[:, :S])
             emb[:, :S] = softmax(emb[:, :S])
         acc[seen] += emb
         n[seen] += 1.0
     acc /= n[:, None]
     if S:
         acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
-    return acc, n
+    return acc, n, (None if h_sum is None else (h_sum / n).astype(np.float32))
