@@ -200,7 +200,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
     of a few frames for the picture.
     """
-    ev, stable = Evaluator(), IdStability()
+    ev, ev_known, stable = Evaluator(), Evaluator(), IdStability()
     c2i = classes.CHANNEL_TO_ID
     times = []
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
@@ -221,6 +221,10 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
                             sc["rgb"][i])
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
+        # The known-class pixels alone (novel ones void): what is lost on known objects,
+        # apart from the novel pixels called known.
+        ev_known.update(lab, np.where(np.isin(sc["semantic"][i], classes.KNOWN_IDS),
+                                      sc["semantic"][i], 0))
         stable.update(lab, sc["semantic"][i], sc["instance"][i])
         if keep is not None and i in (2, len(sc["depth"]) // 2) and len(keep) < 4:
             keep.append((sc["rgb"][i], sc["semantic"][i],
@@ -228,6 +232,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     r = ev.result()
     out = {k: r[k] for k in METRICS}
     out["novel_classes_matched"] = len(r["novel_matching"])
+    out["known_only_miou"] = ev_known.result()["miou_known"]
     out.update(stable.result())
     out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
     return out, times
@@ -255,7 +260,7 @@ def discover(scenes: list[dict], cfg: config.Config, source: str = "rendered",
         _SCENES = []
     else:
         per = [discover_scene(sc, cfg, source, keep) for sc in scenes]
-    out: dict = {k: float(np.mean([r[k] for r, _ in per])) for k in METRICS}
+    out: dict = {k: float(np.mean([r[k] for r, _ in per])) for k in METRICS + ("known_only_miou",)}
     out["per_scene_miou_all"] = [r["miou_all"] for r, _ in per]
     out["per_scene_miou_novel"] = [r["miou_novel"] for r, _ in per]
     for k in ("miou_all", "miou_known", "miou_novel"):
@@ -377,7 +382,18 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
     for name, source in (("rendered", "rendered"), ("logits", "logits")):
         r = discover(scenes, cfg, source, workers=workers)
         out[name] = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel",
-                                       "novel_id_stability", "iou")}
+                                       "known_only_miou", "novel_id_stability", "iou")}
+    # Known mIoU over the known-class pixels alone: each embedding's argmax, then discovery.
+    for name, key in (("logits", "logits"), ("rendered", "embedding")):
+        per_scene = []
+        for sc in scenes:  # each scene on its own, then the mean, as discover() does
+            ev, gt = Evaluator(), sc["semantic"]
+            ev.update(c2i[sc[key].astype(np.float32).argmax(-1)].astype(np.uint16),
+                      np.where(np.isin(gt, known), gt, 0))
+            per_scene.append(ev.result()["miou_known"])
+        out[f"known_only_miou_{name}_argmax"] = float(np.mean(per_scene))
+    out["known_only_miou_discovery"] = out["rendered"]["known_only_miou"]
+    out["known_miou_discovery"] = out["rendered"]["miou_known"]
     return out
 
 
