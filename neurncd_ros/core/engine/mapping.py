@@ -387,7 +387,8 @@ class MapperStage:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
         stored embeddings of the nearest keyframes ``kfs`` (and the recent frames) that see
         it (:func:`fuse_keyframes`); pixels without depth keep the frame's own. Also the
-        (h, w) mean of the views' own entropies (fusion probabilities; None otherwise)."""
+        (h, w) mean of the views' own entropies (fusion probabilities and a
+        ``disagreement_weight``; None otherwise)."""
         if self.cfg.fusion_recent > 0:
             with self._lock:
                 kfs = kfs + [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
@@ -396,7 +397,8 @@ class MapperStage:
         out = backbone.copy()
         out[mask], _, h_views = fuse_keyframes(
             points, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
-            logit_channels if self.cfg.fusion == "probabilities" else None)
+            logit_channels if self.cfg.fusion == "probabilities" else None,
+            view_entropy=self.cfg.disagreement_weight > 0)
         if h_views is None:
             return out, None
         mean_h = np.full(backbone.shape[:2], np.nan, np.float32)

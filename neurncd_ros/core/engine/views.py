@@ -72,12 +72,14 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
 
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
-                   tolerance: float, logit_channels: int | None = None
+                   tolerance: float, logit_channels: int | None = None,
+                   view_entropy: bool = True
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
     :func:`coverage`), how many views were averaged (N,), and (with
-    ``logit_channels``) the mean of the views' own entropies (N,) (None without):
+    ``logit_channels`` and ``view_entropy``) the mean of the views' own entropies (N,)
+    (None otherwise; it costs a second pass over the views' probabilities):
     the entropy of the mean minus this mean is the views' disagreement (their
     mutual information), zero where every view says the same.
 
@@ -94,8 +96,9 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     S = 0 if logit_channels is None else int(logit_channels)
     acc = own.astype(np.float32, copy=True)
     h_sum = None
-    if S:
+    if S and view_entropy:
         h_sum = entropy(acc[:, :S]).astype(np.float64)
+    if S:
         acc[:, :S] = softmax(acc[:, :S])
     n = np.ones(len(points), np.float32)
     for kf in keyframes:
@@ -107,8 +110,9 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
         ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
         ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
         emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
-        if S:
+        if h_sum is not None:
             h_sum[seen] += entropy(emb[:, :S])
+        if S:
             emb[:, :S] = softmax(emb[:, :S])
         acc[seen] += emb
         n[seen] += 1.0
