@@ -301,42 +301,39 @@ class Discoverer:
         share = hist.max(axis=1) / np.maximum(hist.sum(axis=1), 1)
         nseg = np.bincount(clusters, minlength=m)
         known = (ent <= cfg.entropy_threshold * np.log(self.S)) & (share >= cfg.majority_share)
+        # Pixel-weighted mean descriptor per cluster (the mode split and the merge use it).
+        cent = np.zeros((m, mem.desc.shape[1]))
+        np.add.at(cent, clusters, mem.desc * mem.pixels[:, None])
+        cent /= np.maximum(pix, 1)[:, None]
         if cfg.mode_split:
-            known &= ~self._distinct_modes(clusters, known, hist.argmax(axis=1), pix, m)
+            known &= ~self._distinct_modes(known, hist.argmax(axis=1), pix, cent)
         novel = ~known & (nseg >= cfg.min_cluster_segments) & (pix >= cfg.min_cluster_pixels)
         cluster_label = np.full(m, UNDECIDED, np.int64)
         cluster_label[known] = self.channel_to_id[hist[known].argmax(axis=1)]
         novel_idx = np.flatnonzero(novel)
-        group = self._novel_groups(clusters, novel_idx, pix)
+        group = self._novel_groups(cent[novel_idx])
         ids = self._match_novel([mem.uid[np.isin(clusters, novel_idx[group == g])]
                                  for g in range(int(group.max()) + 1 if group.size else 0)])
         cluster_label[novel_idx] = ids[group]
         return cluster_label[clusters]
 
-    def _novel_groups(self, clusters: np.ndarray, novel_idx: np.ndarray, pix: np.ndarray
-                      ) -> np.ndarray:
-        """(len(novel_idx),) group number 0..g-1 per novel cluster: the connected
-        components of "mean descriptors closer than ``novel_merge_distance``" (each
+    def _novel_groups(self, cent: np.ndarray) -> np.ndarray:
+        """Group number 0..g-1 per novel cluster, given their mean descriptors ``cent``:
+        the connected components of "closer than ``novel_merge_distance``" (each
         cluster its own group when the distance is 0)."""
-        k = novel_idx.size
+        k = len(cent)
         if k < 2 or self.cfg.novel_merge_distance <= 0:
             return np.arange(k, dtype=np.int64)
         from scipy.sparse.csgraph import connected_components
 
-        mem = self._mem
-        pos = np.full(int(clusters.max()) + 1, -1, np.int64)
-        pos[novel_idx] = np.arange(k)
-        sel = pos[clusters] >= 0
-        cent = np.zeros((k, mem.desc.shape[1]))
-        np.add.at(cent, pos[clusters[sel]], mem.desc[sel] * mem.pixels[sel, None])
-        cent /= np.maximum(pix[novel_idx], 1)[:, None]
         near = np.linalg.norm(cent[:, None] - cent[None], axis=2) < self.cfg.novel_merge_distance
         _, group = connected_components(near, directed=False)
         return group.astype(np.int64)
 
-    def _distinct_modes(self, clusters: np.ndarray, known: np.ndarray, channel: np.ndarray,
-                        pix: np.ndarray, m: int) -> np.ndarray:
-        """(m,) bool: known clusters that are a separate, small mode of their class.
+    def _distinct_modes(self, known: np.ndarray, channel: np.ndarray, pix: np.ndarray,
+                        cent: np.ndarray) -> np.ndarray:
+        """(m,) bool: known clusters that are a separate, small mode of their class
+        (``cent``: the clusters' pixel-weighted mean descriptors).
 
         Why: a picture or window on a wall is confidently "wall" to the backbone, so
         its cluster passes the entropy and majority tests; but it is its own cluster,
@@ -344,11 +341,7 @@ class Discoverer:
         and much smaller. A class that merely varies forms clusters close to its
         dominant one, or of comparable size, and stays known.
         """
-        mem = self._mem
-        cent = np.zeros((m, mem.desc.shape[1]))
-        np.add.at(cent, clusters, mem.desc * mem.pixels[:, None])
-        cent /= np.maximum(pix, 1)[:, None]
-        out = np.zeros(m, bool)
+        out = np.zeros(len(known), bool)
         for ch in np.unique(channel[known]).tolist():
             idx = np.flatnonzero(known & (channel == ch))
             if idx.size < 2:
