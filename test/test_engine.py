@@ -180,7 +180,8 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     # the mean (5/8, 3/8) comes back as log-probabilities.
     other = kf(2.0, 0.0)
     other.embedding[..., 0] = np.log(3.0)
-    fused, n, h_views = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2)
+    fused, n, h_views = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2,
+                                       view_entropy=True)
     assert n.tolist() == [2.0] and np.allclose(fused, np.log([[5 / 8, 3 / 8]]), atol=1e-3)
     # The views' own entropies: ln 2 and H(3/4, 1/4); their mean lies below the entropy of
     # the mean (5/8, 3/8): the gap is the views' disagreement.

@@ -444,7 +444,7 @@ class MapperStage:
             emb[sel] = wt * field + (1.0 - wt) * backbone[sel]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])
-        if mean_h is not None and self.cfg.disagreement_weight > 0:
+        if mean_h is not None:  # only with a disagreement_weight (keyframe_fill)
             # The views' disagreement where the keyframes filled in (not where the field did).
             gap = np.nan_to_num(np.maximum(ent - mean_h, 0.0)) * (1.0 - weight)
             ent = np.minimum(ent + self.cfg.disagreement_weight * gap,

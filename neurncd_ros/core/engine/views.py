@@ -73,7 +73,7 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None,
-                   view_entropy: bool = True
+                   view_entropy: bool = False
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
