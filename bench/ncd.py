@@ -392,8 +392,6 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
                       np.where(np.isin(gt, known), gt, 0))
             per_scene.append(ev.result()["miou_known"])
         out[f"known_only_miou_{name}_argmax"] = float(np.mean(per_scene))
-    out["known_only_miou_discovery"] = out["rendered"]["known_only_miou"]
-    out["known_miou_discovery"] = out["rendered"]["miou_known"]
     return out
 
 
