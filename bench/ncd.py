@@ -404,8 +404,18 @@ def _slug(pairs: list[str]) -> str:
 def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: int) -> None:
     """``--sweep key=v1,v2,...``: the discovery scores of each value on the tuning scenes,
     a table on stdout and bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
+    if "=" not in args.sweep or "." not in args.sweep.split("=", 1)[0]:
+        raise SystemExit(f"--sweep {args.sweep!r}: expected SECTION.KEY=V1,V2,...")
     key, raw = args.sweep.split("=", 1)
     values = [config.parse_overrides([f"{key}={v}"])[key] for v in raw.split(",")]
+    try:  # every value is checked against the schema before any scene is scored
+        for v in values:
+            with_overrides(base, {key: v})
+    except KeyError:
+        raise SystemExit(f"--sweep {args.sweep!r}: unknown section "
+                         f"{key.split('.')[0]!r}") from None
+    except config.ConfigError as err:
+        raise SystemExit(f"--sweep {args.sweep!r}: {err}") from None
     scenes = prepare(base, seeds.TUNE[:n_tune], frames, args.workers)
     rows = []
     for v in tqdm(values, desc=f"sweep {key}"):
