@@ -217,6 +217,52 @@ def test_augment_keeps_labels_aligned():
     assert ((r.mean(1) > 100) == (t == 1))[inside].float().mean() > 0.95
 
 
+def test_outlier_paste_takes_only_known_colour_and_marks_it_outlier():
+    """Outlier exposure pastes another sample's known-class colour onto the destination's
+    geometry as OUTLIER; novel (IGNORE) sources are never pasted, IGNORE stays IGNORE."""
+    gen = torch.Generator().manual_seed(0)
+    b, h, w = 4, 40, 48
+    tgt = torch.zeros(b, h, w, dtype=torch.long)          # wall-ish class 0 everywhere
+    tgt[1] = 3                                            # sample 1 is another class
+    tgt[2] = train.IGNORE                                 # sample 2 is all novel
+    rgb = torch.stack([torch.full((3, h, w), float(v)) for v in (10, 120, 250, 60)])
+    r, t = train.paste_outliers(rgb, tgt, gen, prob=1.0)
+    out = t == train.OUTLIER
+    # Sample 0 takes sample 1's colour (class 3 on class 0): pasted, marked outlier.
+    assert out[0].any() and (r[0, 0][out[0]] == 120).all() and (r[0, 0][~out[0]] == 10).all()
+    # Sample 1 would take sample 2's colour, which is all novel: never pasted.
+    assert not out[1].any() and torch.equal(r[1], rgb[1])
+    # Sample 2's destination pixels are IGNORE and stay so (the colour may change).
+    assert (t[2] == train.IGNORE).all()
+    # Sample 3 would take sample 0's class-0 colour onto class 0: same class, not pasted.
+    assert not out[3].any()
+    # Nothing pasted without the option; the input tensors are not modified.
+    r0, t0 = train.paste_outliers(rgb, tgt, gen, prob=0.0)
+    assert torch.equal(r0, rgb) and torch.equal(t0, tgt)
+    assert (tgt != train.OUTLIER).all()
+
+
+def test_outlier_loss_pushes_towards_uniform_and_leaves_ce_alone():
+    logits = torch.randn(2, classes.NUM_KNOWN, 6, 5, generator=torch.Generator().manual_seed(1))
+    tgt = torch.randint(0, classes.NUM_KNOWN, (2, 6, 5), generator=torch.Generator().manual_seed(2))
+    w = torch.ones(classes.NUM_KNOWN)
+    plain = train.loss_terms(logits, tgt, w)
+    assert set(plain) == {"ce"}
+    tgt_oe = tgt.clone()
+    tgt_oe[:, :2] = train.OUTLIER
+    terms = train.loss_terms(logits, tgt_oe, w, outlier_weight=0.5)
+    # CE over the remaining pixels only; OE = 0.5 * cross-entropy from uniform.
+    keep = tgt_oe != train.OUTLIER
+    ce = torch.nn.functional.cross_entropy(logits.permute(0, 2, 3, 1)[keep], tgt_oe[keep])
+    assert torch.isclose(terms["ce"], ce)
+    logp = torch.log_softmax(logits.permute(0, 2, 3, 1)[~keep], dim=1)
+    assert torch.isclose(terms["oe"], -0.5 * logp.mean())
+    # Uniform logits are the minimum of the OE term (log S).
+    flat = train.loss_terms(torch.zeros_like(logits), tgt_oe, w, outlier_weight=1.0)["oe"]
+    assert torch.isclose(flat, torch.tensor(np.log(classes.NUM_KNOWN), dtype=flat.dtype))
+    assert terms["oe"] > flat * 0.5
+
+
 def test_train_loop_learns_a_toy_task(tmp_path):
     """A few steps on a toy RGB-D task lower the loss and write weights + record."""
     rng = np.random.default_rng(0)
@@ -248,6 +294,16 @@ def test_train_loop_learns_a_toy_task(tmp_path):
                                progress=False, command="test", crop=None,
                                init=str(tmp_path / "w.pt"))
     assert rec["init"]["trained_on"] == "toy" and rec["trained_on"] == "arrays"
+    # Outlier exposure: its term is logged per epoch and the record says so.
+    rec = train.train_backbone(tmp_path / "o.pt", toy(8), toy(4), epochs=1, batch_size=4,
+                               progress=False, command="test", crop=None,
+                               init=str(tmp_path / "w.pt"), outlier_weight=0.5,
+                               outlier_prob=1.0)
+    assert rec["history"][0]["oe"] > 0 and rec["outlier_weight"] == 0.5
+    assert "outlier exposure" in rec["loss"]
+    with pytest.raises(ValueError, match="outlier_weight"):
+        train.train_backbone(tmp_path / "x.pt", toy(4), toy(4), progress=False,
+                             outlier_weight=-1.0)
     # Reproducible: the same options give the same weights, bit for bit.
     rng = np.random.default_rng(0)
     data = (toy(16), toy(4))

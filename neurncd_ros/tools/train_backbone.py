@@ -101,6 +101,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "e.g. --size 320 256 --crop 192 256; slow on a CPU)")
     parser.add_argument("--esanet-dataset", choices=("nyuv2", "sunrgbd"), default="nyuv2",
                         help="with --arch esanet: the checkpoint's classes and depth statistics")
+    parser.add_argument("--outlier-weight", type=float, default=0.0,
+                        help="outlier exposure: weight of the loss that pushes pasted "
+                        "known-class colour on foreign geometry towards a uniform prediction "
+                        "(0 = off), so unseen objects raise the entropy")
+    parser.add_argument("--outlier-prob", type=float, default=0.5,
+                        help="with --outlier-weight: share of training samples given a paste")
     parser.add_argument("--cache", default=str(DEFAULT_CACHE),
                         help="folder for cached synthetic frames (npz)")
     parser.add_argument("--data", nargs="+", default=None, metavar="BAG_OR_FOLDER",
@@ -241,7 +247,8 @@ def main(args: argparse.Namespace) -> int:
                          crop=tuple(args.crop), init=args.init, widths=tuple(args.widths),
                          val_every=args.val_every, command=command_line(args),
                          data_seconds=time.time() - t0, arch=args.arch,
-                         esanet_dataset=args.esanet_dataset)
+                         esanet_dataset=args.esanet_dataset,
+                         outlier_weight=args.outlier_weight, outlier_prob=args.outlier_prob)
     return 0
 
 

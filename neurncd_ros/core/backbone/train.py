@@ -43,6 +43,10 @@ from . import small
 IGNORE = 255
 """Target value of pixels left out of the loss (void and novel classes)."""
 
+OUTLIER = 254
+"""Target value of pasted outlier pixels (outlier exposure): the loss pushes their
+prediction towards uniform instead of towards a class (:func:`paste_outliers`)."""
+
 # NYU-13 id -> training target (channel index for known classes, IGNORE otherwise).
 _ID_TO_TARGET = np.where(classes.KNOWN_CHANNEL >= 0, classes.KNOWN_CHANNEL,
                          IGNORE).astype(np.uint8)
@@ -157,6 +161,57 @@ def augment(rgb: torch.Tensor, depth: torch.Tensor, target: torch.Tensor,
     return rgb.clamp(0, 255), depth, target
 
 
+def paste_outliers(rgb: torch.Tensor, target: torch.Tensor, gen: torch.Generator,
+                   prob: float = 0.5, size: tuple[float, float] = (0.1, 0.4),
+                   min_known: float = 0.97, tries: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """Outlier exposure by cut and paste: colour that does not belong to its geometry.
+
+    Why: the network learns the known classes and nothing else, so an unseen
+    flat object on a wall (a picture, a screen) is confidently "wall"; the
+    entropy that discovery relies on never rises there. Here, with probability
+    ``prob`` per sample, a rectangle of another sample's colour (sides ``size``
+    of the window's) is pasted at a random place while the depth stays the
+    destination's, and its pixels get target :data:`OUTLIER`, whose loss asks for
+    a uniform prediction (:func:`loss_terms`). Only known classes are pasted: a
+    source rectangle with less than ``min_known`` known-class pixels (novel, void or
+    outside the frame) is not used, so the novel classes do not enter training,
+    not even as outliers; nor is one whose majority class is the destination's
+    (wall texture on a wall is not an outlier). Up to ``tries`` source places are
+    drawn per sample. Destination pixels that were IGNORE stay IGNORE.
+    rgb (B, 3, H, W), target (B, H, W) long; returns new tensors.
+    """
+    b, _, h, w = rgb.shape
+    rgb, target = rgb.clone(), target.clone()
+    if b < 2 or prob <= 0:
+        return rgb, target
+    src_rgb, src_tgt = rgb.clone(), target.clone()  # pastes read the unpasted batch
+    use = torch.rand(b, generator=gen) < prob
+    sides = torch.empty(b, 2).uniform_(*size, generator=gen)
+    dest = torch.rand(b, 2, generator=gen)
+    srcs = torch.rand(b, tries, 2, generator=gen)
+    n = classes.NUM_KNOWN
+    for i in torch.nonzero(use).flatten().tolist():
+        j = (i + 1) % b
+        ph, pw = max(int(sides[i, 0] * h), 2), max(int(sides[i, 1] * w), 2)
+        dy, dx = int(dest[i, 0] * (h - ph)), int(dest[i, 1] * (w - pw))
+        dst = target[i, dy:dy + ph, dx:dx + pw]
+        dst_known = dst[dst < n]
+        dst_major = int(torch.bincount(dst_known, minlength=n).argmax()) \
+            if dst_known.numel() else -1
+        for t in range(tries):
+            sy, sx = int(srcs[i, t, 0] * (h - ph)), int(srcs[i, t, 1] * (w - pw))
+            src = src_tgt[j, sy:sy + ph, sx:sx + pw]
+            known = src < n
+            if known.float().mean() < min_known or \
+                    int(torch.bincount(src[known], minlength=n).argmax()) == dst_major:
+                continue
+            rgb[i, :, dy:dy + ph, dx:dx + pw] = src_rgb[j, :, sy:sy + ph, sx:sx + pw]
+            target[i, dy:dy + ph, dx:dx + pw] = torch.where(dst == IGNORE, dst,
+                                                            torch.full_like(dst, OUTLIER))
+            break
+    return rgb, target
+
+
 # ----------------------------------------------------------------------------- metrics
 def confusion(pred: np.ndarray, target: np.ndarray, n: int = classes.NUM_KNOWN) -> np.ndarray:
     """(n, n) counts [gt, pred] over pixels whose target is a known class (< n)."""
@@ -250,23 +305,36 @@ def _esanet_from(path: str, dataset: str, depth_mode: str) -> KnownClassESANet:
     return KnownClassESANet(net, dataset, depth_mode)
 
 
-def loss_terms(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
-               ) -> dict[str, torch.Tensor]:
+def loss_terms(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
+               outlier_weight: float = 0.0) -> dict[str, torch.Tensor]:
     """The training objective as named terms, summed by :func:`train_step`.
 
     ``ce``: class-weighted cross-entropy over the known channels, void and novel
-    pixels (IGNORE) left out. A new term is one more entry here; each term's
-    mean per epoch is logged in the record's history.
+    pixels (IGNORE) and pasted outliers (OUTLIER) left out. ``oe`` (with
+    ``outlier_weight`` > 0; Hendrycks et al. 2019's outlier exposure): the
+    cross-entropy from the uniform distribution to the prediction on OUTLIER
+    pixels, times the weight, so that unseen appearance raises the entropy. A
+    new term is one more entry here; each term's mean per epoch is logged in the
+    record's history.
     """
-    return {"ce": F.cross_entropy(logits, target, weight=weights, ignore_index=IGNORE)}
+    terms = {"ce": F.cross_entropy(logits, torch.where(target == OUTLIER, IGNORE, target),
+                                   weight=weights, ignore_index=IGNORE)}
+    if outlier_weight > 0:
+        out = target == OUTLIER
+        if out.any():
+            logp = F.log_softmax(logits.permute(0, 2, 3, 1)[out], dim=1)
+            terms["oe"] = -outlier_weight * logp.mean()
+        else:
+            terms["oe"] = logits.sum() * 0.0
+    return terms
 
 
 def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, rgb: torch.Tensor,
-               depth: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
-               ) -> dict[str, float]:
+               depth: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
+               outlier_weight: float = 0.0) -> dict[str, float]:
     """One optimiser step on an (augmented) batch; returns the loss and its terms."""
     logits = model.predict_raw(rgb, depth)
-    terms = loss_terms(logits, target, weights)
+    terms = loss_terms(logits, target, weights, outlier_weight)
     loss = sum(terms.values())
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -302,7 +370,8 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                    command: str | None = None,
                    widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
                    val_every: int = 0, data_seconds: float = 0.0, arch: str = "default",
-                   esanet_dataset: str = "nyuv2", esanet_depth_mode: str = "raw") -> dict:
+                   esanet_dataset: str = "nyuv2", esanet_depth_mode: str = "raw",
+                   outlier_weight: float = 0.0, outlier_prob: float = 0.5) -> dict:
     """Train the default net on ``train``, save weights to ``out_path`` and the record
     next to it (``<out_path stem>.json``); returns the record.
 
@@ -317,7 +386,10 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     selected on the validation data). The reported validation scores are those
     of the saved fp16 weights. ``arch="esanet"`` fine-tunes the ESANet checkpoint
     ``init`` instead (:class:`KnownClassESANet`; frame sizes multiples of 32) and
-    writes an ESANet checkpoint.
+    writes an ESANet checkpoint. ``outlier_weight`` > 0 adds outlier exposure:
+    with probability ``outlier_prob`` per sample a rectangle of another sample's
+    known-class colour is pasted onto the destination's geometry and its prediction
+    pushed towards uniform (:func:`paste_outliers`, :func:`loss_terms`).
     """
     from tqdm import tqdm
 
@@ -325,6 +397,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         raise ValueError("epochs and batch_size must be >= 1")
     n = check_arrays(train, "training data")
     check_arrays(val, "validation data")
+    if outlier_weight < 0 or not 0.0 <= outlier_prob <= 1.0:
+        raise ValueError(f"outlier_weight must be >= 0 and outlier_prob in [0, 1], got "
+                         f"{outlier_weight}, {outlier_prob}")
     if arch not in ("default", "esanet"):
         raise ValueError(f"arch must be 'default' or 'esanet', got {arch!r}")
     if arch == "esanet":
@@ -381,9 +456,11 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
             depth = torch.from_numpy(depth_all[idx])[:, None]
             tgt = torch.from_numpy(targets[idx]).long()
             rgb, depth, tgt = augment(rgb, depth, tgt, gen, crop=crop)
+            if outlier_weight > 0:
+                rgb, tgt = paste_outliers(rgb, tgt, gen, outlier_prob)
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, total_steps)
-            logs.append(train_step(model, opt, rgb, depth, tgt, weights))
+            logs.append(train_step(model, opt, rgb, depth, tgt, weights, outlier_weight))
             step += 1
             bar.update(1)
             bar.set_postfix(epoch=epoch,
@@ -439,7 +516,12 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         "batch_size": batch_size, "lr": lr, "weight_decay": weight_decay, "seed": seed,
         "class_weights": [round(float(x), 3) for x in weights],
         "loss": "cross-entropy over 9 known classes; void and novel "
-                "(ceiling, picture, tv, window) ignored",
+                "(ceiling, picture, tv, window) ignored" + (
+                    f"; outlier exposure weight {outlier_weight}: with probability "
+                    f"{outlier_prob} per sample a known-class colour rectangle of another "
+                    "sample pasted on the destination's depth, pushed towards uniform"
+                    if outlier_weight > 0 else ""),
+        "outlier_weight": outlier_weight, "outlier_prob": outlier_prob,
         "augmentation": f"flip, zoom 0.8-1.35, crop {crop}, colour jitter 0.25, rgb noise",
         "val_miou_known": round(val_scores["miou_known"], 2),
         "val_pixel_accuracy": round(val_scores["pixel_accuracy"], 4),
