@@ -1,11 +1,16 @@
-"""Backbone benchmark: speed of the default net and ESANet, accuracy of the default net.
+"""Backbone benchmark: speed of the default net and ESANet, accuracy of the default net,
+and how its entropy points at the novel classes (with and without its novelty branch).
 
 Writes bench/results/backbone.json (flat figures) and bench/results/backbone.png
 (rgb | ground truth | prediction for a few held-out synthetic frames).
 
 Accuracy: ``default_*`` on the 5 validation seeds of the training record
 (seeds.BACKBONE_VAL; reported there, never used to pick weights), ``test_*`` on
-5 of the project's test seeds (seeds.TEST), 30 frames each, 1 s apart.
+5 of the project's test seeds (seeds.TEST), 30 frames each, 1 s apart. Novelty:
+``*_entropy_<class>`` the mean entropy / log S on that class's pixels, ``*_auroc_novel``
+(and per novel class) the AUROC of that entropy for novel against known pixels
+(fractions); ``test_no_branch_*`` and ``default_no_branch_ms_*`` are the shipped weights
+without their novelty branch (``backbone.novelty_branch`` false), when they have one.
 
     .venv/bin/python bench/backbone.py            # full: 5 + 5 held-out seeds x 30 frames
     .venv/bin/python bench/backbone.py --quick    # fewer runs / frames (smoke)
@@ -30,6 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.backbone import backbone as bb  # noqa: E402
+from neurncd_ros.core.backbone import data as train_data  # noqa: E402
 from neurncd_ros.core.backbone import train  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 from neurncd_ros.synth import training as synth_training  # noqa: E402
@@ -101,14 +107,46 @@ def esanet_speed(runs: int) -> dict:
     return out
 
 
+def auroc(pos: np.ndarray, neg: np.ndarray) -> float:
+    """Area under the ROC curve of scores ``pos`` (should be high) against ``neg``
+    (Mann-Whitney U from ranks; ties count half), a fraction."""
+    from scipy.stats import rankdata
+
+    if pos.size == 0 or neg.size == 0:
+        return float("nan")
+    r = rankdata(np.concatenate([pos, neg]))
+    return float((r[: pos.size].sum() - pos.size * (pos.size + 1) / 2) / (pos.size * neg.size))
+
+
+def novelty(ent: np.ndarray, sem: np.ndarray, prefix: str) -> dict:
+    """Mean normalised entropy per ground-truth class and the AUROC of entropy for
+    novel-class against known-class pixels (all novel classes, and each one)."""
+    out = {}
+    known = np.isin(sem, classes.KNOWN_IDS)
+    for cid in classes.KNOWN_IDS + classes.NOVEL_IDS:
+        sel = sem == cid
+        if sel.any():
+            out[f"{prefix}_entropy_{classes.class_name(cid)}"] = float(ent[sel].mean())
+    out[f"{prefix}_entropy_known"] = float(ent[known].mean())
+    out[f"{prefix}_entropy_novel"] = float(ent[np.isin(sem, classes.NOVEL_IDS)].mean())
+    out[f"{prefix}_auroc_novel"] = auroc(ent[np.isin(sem, classes.NOVEL_IDS)], ent[known])
+    for cid in classes.NOVEL_IDS:
+        if (sem == cid).any():
+            out[f"{prefix}_auroc_{classes.class_name(cid)}"] = auroc(ent[sem == cid], ent[known])
+    return out
+
+
 def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
              prefix: str = "default") -> tuple[dict, list]:
-    """Known-class mIoU through Backbone.predict on held-out seeds.
+    """Known-class mIoU through Backbone.predict on held-out seeds, and how its entropy
+    separates the novel classes from the known ones (:func:`novelty`).
 
     By default the validation seeds of the training record (30 frames per seed,
     1 s apart, cached; no weights were picked on them, the last step ships);
     ``stride`` > 1 keeps every stride-th frame (quick mode).
     """
+    from neurncd_ros.core.uncertainty import entropy
+
     from tqdm import tqdm
 
     data = synth_training.load_scenes(scene_seeds, 30,
@@ -119,10 +157,14 @@ def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
     conf = np.zeros((n, n), dtype=np.int64)
     shown = []
     pick = set(np.linspace(0, len(data["rgb"]) - 1, 4).astype(int).tolist())
+    ents, sems = [], []
     for i in tqdm(range(len(data["rgb"])), desc="held-out frames"):
         logits = backbone.predict(data["rgb"][i], data["depth"][i])
         pred = logits.argmax(-1)
-        conf += train.confusion(pred, train.semantic_to_target(data["semantic"][i]))
+        conf += train.confusion(pred, train_data.semantic_to_target(data["semantic"][i]))
+        # Every second pixel in each direction is plenty for the entropy statistics.
+        ents.append(entropy(logits)[::2, ::2].ravel() / np.log(logits.shape[-1]))
+        sems.append(data["semantic"][i][::2, ::2].ravel())
         if i in pick:
             shown.append((data["rgb"][i], data["semantic"][i],
                           backbone.channel_to_id[pred].astype(np.uint16)))
@@ -132,6 +174,7 @@ def accuracy(backbone: bb.Backbone, stride: int = 1, scene_seeds=VAL_SEEDS,
     for name, v in s["iou"].items():
         if v is not None:
             out[f"{prefix}_iou_{name}"] = v
+    out.update(novelty(np.concatenate(ents), np.concatenate(sems), prefix))
     return out, shown
 
 
@@ -160,6 +203,15 @@ def main() -> int:
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).
     res.update(accuracy(backbone, 5 if args.quick else 1, seeds.TEST[:5], "test")[0])
+    if getattr(backbone.net, "novelty_branch", False):
+        # The same weights without their novelty branch (backbone.novelty_branch false):
+        # the same argmax, the known-class head's own entropy.
+        plain = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
+                                                   novelty_branch=False))
+        res.update({k.replace("default_", "default_no_branch_"): v for k, v in
+                    default_speed(plain, runs).items()})
+        res.update(accuracy(plain, 5 if args.quick else 1, seeds.TEST[:5],
+                            "test_no_branch")[0])
     if not args.no_esanet:
         res.update(esanet_speed(3 if args.quick else 10))
     from neurncd_ros.core.backbone import small

@@ -11,6 +11,7 @@ import torch
 
 from neurncd_ros.core import classes, uncertainty
 from neurncd_ros.core.backbone import backbone as bb
+from neurncd_ros.core.backbone import data as train_data
 from neurncd_ros.core.backbone import small, train
 from neurncd_ros.core.params import ConfigError, build
 
@@ -179,17 +180,17 @@ def test_entropy_range_and_stability():
 # ----------------------------------------------------------------------------- training pieces
 def test_targets_ignore_novel_and_void():
     sem = np.arange(14, dtype=np.uint16)[None]
-    tgt = train.semantic_to_target(sem)[0]
+    tgt = train_data.semantic_to_target(sem)[0]
     for cid in range(14):
         if cid in classes.KNOWN_IDS:
             assert tgt[cid] == classes.ID_TO_CHANNEL[cid]
         else:
-            assert tgt[cid] == train.IGNORE
+            assert tgt[cid] == train_data.IGNORE
 
 
 def test_miou_definition():
     # 2 known classes on 4 known pixels; novel pixel (IGNORE) must not count.
-    target = np.array([0, 0, 1, 1, train.IGNORE], np.uint8)
+    target = np.array([0, 0, 1, 1, train_data.IGNORE], np.uint8)
     pred = np.array([0, 1, 1, 1, 0], np.int64)
     s = train.scores_from_confusion(train.confusion(pred, target))
     # IoU(0) = 1/2, IoU(1) = 2/3, other classes absent from GT are excluded.
@@ -204,16 +205,16 @@ def test_augment_keeps_labels_aligned():
     lab[:, :, 32:] = 1
     rgb = (lab[:, None].float() * 200).repeat(1, 3, 1, 1)
     depth = torch.ones(2, 1, 48, 64)
-    r, d, t = train.augment(rgb, depth, lab, gen, jitter=0.0)
-    inside = t != train.IGNORE
+    r, d, t = train_data.augment(rgb, depth, lab, gen, jitter=0.0)
+    inside = t != train_data.IGNORE
     assert inside.float().mean() > 0.5
     bright = r.mean(1) > 100
     agree = (bright == (t == 1))[inside].float().mean()
     assert agree > 0.95
     assert ((d[:, 0] == 0) == ~inside).float().mean() > 0.95
-    r, d, t = train.augment(rgb, depth, lab, gen, crop=(32, 40))
+    r, d, t = train_data.augment(rgb, depth, lab, gen, crop=(32, 40))
     assert r.shape == (2, 3, 32, 40) and d.shape == (2, 1, 32, 40) and t.shape == (2, 32, 40)
-    inside = t != train.IGNORE
+    inside = t != train_data.IGNORE
     assert ((r.mean(1) > 100) == (t == 1))[inside].float().mean() > 0.95
 
 
@@ -224,22 +225,22 @@ def test_outlier_paste_takes_only_known_colour_and_marks_it_outlier():
     b, h, w = 4, 40, 48
     tgt = torch.zeros(b, h, w, dtype=torch.long)          # wall-ish class 0 everywhere
     tgt[1] = 3                                            # sample 1 is another class
-    tgt[2] = train.IGNORE                                 # sample 2 is all novel
+    tgt[2] = train_data.IGNORE                                 # sample 2 is all novel
     rgb = torch.stack([torch.full((3, h, w), float(v)) for v in (10, 120, 250, 60)])
-    r, t = train.paste_outliers(rgb, tgt, gen, prob=1.0)
-    out = t == train.OUTLIER
+    r, t = train_data.paste_outliers(rgb, tgt, gen, prob=1.0)
+    out = t == train_data.OUTLIER
     # Sample 0 takes sample 1's colour (class 3 on class 0): pasted, marked outlier.
     assert out[0].any() and (r[0, 0][out[0]] == 120).all() and (r[0, 0][~out[0]] == 10).all()
     # Sample 1 would take sample 2's colour, which is all novel: never pasted.
     assert not out[1].any() and torch.equal(r[1], rgb[1])
     # Sample 2's destination pixels are IGNORE and stay so (the colour may change).
-    assert (t[2] == train.IGNORE).all()
+    assert (t[2] == train_data.IGNORE).all()
     # Sample 3 would take sample 0's class-0 colour onto class 0: same class, not pasted.
     assert not out[3].any()
     # Nothing pasted without the option; the input tensors are not modified.
-    r0, t0 = train.paste_outliers(rgb, tgt, gen, prob=0.0)
+    r0, t0 = train_data.paste_outliers(rgb, tgt, gen, prob=0.0)
     assert torch.equal(r0, rgb) and torch.equal(t0, tgt)
-    assert (tgt != train.OUTLIER).all()
+    assert (tgt != train_data.OUTLIER).all()
 
 
 def test_outlier_loss_pushes_towards_uniform_and_leaves_ce_alone():
@@ -249,10 +250,10 @@ def test_outlier_loss_pushes_towards_uniform_and_leaves_ce_alone():
     plain = train.loss_terms(logits, tgt, w)
     assert set(plain) == {"ce"}
     tgt_oe = tgt.clone()
-    tgt_oe[:, :2] = train.OUTLIER
+    tgt_oe[:, :2] = train_data.OUTLIER
     terms = train.loss_terms(logits, tgt_oe, w, outlier_weight=0.5)
     # CE over the remaining pixels only; OE = 0.5 * cross-entropy from uniform.
-    keep = tgt_oe != train.OUTLIER
+    keep = tgt_oe != train_data.OUTLIER
     ce = torch.nn.functional.cross_entropy(logits.permute(0, 2, 3, 1)[keep], tgt_oe[keep])
     assert torch.isclose(terms["ce"], ce)
     logp = torch.log_softmax(logits.permute(0, 2, 3, 1)[~keep], dim=1)
@@ -316,6 +317,51 @@ def test_train_loop_learns_a_toy_task(tmp_path):
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_novelty_branch_keeps_the_argmax_and_raises_entropy_on_outliers(tmp_path):
+    """A novelty branch trained with outlier exposure on a frozen net: every pixel's
+    argmax is the net's, the net's weights are untouched, and the entropy rises on
+    colour that does not belong to its geometry while staying low on known classes."""
+    rng = np.random.default_rng(0)
+
+    def toy(n, paste=False):
+        sem = np.full((n, 48, 64), classes.CLASS_ID["wall"], np.uint16)
+        sem[:, 24:] = classes.CLASS_ID["floor"]
+        rgb = np.where(sem[..., None] == classes.CLASS_ID["floor"], 60, 200).repeat(3, -1)
+        rgb = (rgb + rng.integers(0, 30, rgb.shape)).astype(np.uint8)
+        depth = np.where(sem == classes.CLASS_ID["floor"], 1.5, 3.0).astype(np.float32)
+        if paste:  # floor colour on the wall's geometry, marked novel (a "picture")
+            rgb[:, 6:16, 20:40] = 60
+            sem[:, 6:16, 20:40] = classes.CLASS_ID["picture"]
+        return {"rgb": rgb, "depth": depth, "semantic": sem}
+
+    base = tmp_path / "base.pt"
+    train.train_backbone(base, toy(16), toy(4), epochs=20, batch_size=4, progress=False,
+                         command="test", crop=None, widths=(8, 8, 16, 16), lr=1e-2)
+    with pytest.raises(ValueError, match="novelty_branch"):
+        train.train_backbone(tmp_path / "x.pt", toy(4), toy(4), progress=False,
+                             novelty_branch=True, init=str(base),
+                             widths=(8, 8, 16, 16))  # no outlier weight
+    rec = train.train_backbone(tmp_path / "nov.pt", toy(16), toy(4, paste=True), epochs=12,
+                               batch_size=4, progress=False, command="test", crop=None,
+                               init=str(base), outlier_weight=0.5, outlier_prob=1.0,
+                               novelty_branch=True, lr=1e-2, widths=(8, 8, 16, 16))
+    assert rec["novelty_branch"] and rec["init"]["weights"] == str(base)
+    plain, nov = small.load_weights(str(base)), small.load_weights(str(tmp_path / "nov.pt"))
+    assert nov.novelty_branch and not plain.novelty_branch
+    for k, v in plain.state_dict().items():  # the frozen net is the same, bit for bit
+        assert torch.equal(v, nov.state_dict()[k]), k
+    val = toy(4, paste=True)
+    rgb = torch.from_numpy(val["rgb"]).permute(0, 3, 1, 2).float()
+    depth = torch.from_numpy(val["depth"])[:, None]
+    with torch.no_grad():
+        a, b = plain.predict_raw(rgb, depth), nov.predict_raw(rgb, depth)
+    assert torch.equal(a.argmax(1), b.argmax(1))
+    ent = {name: train.entropy_by_kind(m, val) for name, m in (("plain", plain), ("nov", nov))}
+    assert rec["val_entropy_novel"] == pytest.approx(ent["nov"]["novel"], abs=1e-3)
+    assert ent["nov"]["novel"] > ent["plain"]["novel"] + 0.2
+    assert ent["nov"]["novel"] > 3 * ent["nov"]["known"]
+
+
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
     """Cached frames are reused, but never across a change of the generator's code."""
     from neurncd_ros import synth
@@ -343,15 +389,17 @@ def test_record_command_reproduces_the_options():
 
     p = argparse.ArgumentParser()
     train_backbone.add_arguments(p)
-    args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8", "16",
-                         "16"])
-    line = train_backbone.command_line(args)
-    assert line.startswith("neurncd train-backbone ")
-    again = p.parse_args(line.split()[2:])
 
     def norm(ns):
         return {k: list(v) if isinstance(v, tuple) else v for k, v in vars(ns).items()}
-    assert norm(again) == norm(args)
+    for extra in ([], ["--novelty-branch", "--outlier-weight", "0.2"]):
+        args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8",
+                             "16", "16", *extra])
+        line = train_backbone.command_line(args)
+        assert line.startswith("neurncd train-backbone ")
+        assert ("--novelty-branch" in line) == bool(extra)
+        again = p.parse_args(line.split()[2:])
+        assert norm(again) == norm(args)
 
 
 # ----------------------------------------------------------------------------- esanet

@@ -21,6 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..core.backbone import data as train_data
 from ..core.backbone import small, train
 from ..synth import seeds
 from ..synth.training import DEFAULT_CACHE, synthetic_data
@@ -107,6 +108,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(0 = off), so unseen objects raise the entropy")
     parser.add_argument("--outlier-prob", type=float, default=0.5,
                         help="with --outlier-weight: share of training samples given a paste")
+    parser.add_argument("--novelty-branch", action="store_true",
+                        help="with --init and --outlier-weight: train only a novelty branch "
+                        "added to the --init net (frozen, so known-class labels do not "
+                        "change); its entropy raises the output's where it sees no known "
+                        "class")
     parser.add_argument("--cache", default=str(DEFAULT_CACHE),
                         help="folder for cached synthetic frames (npz)")
     parser.add_argument("--data", nargs="+", default=None, metavar="BAG_OR_FOLDER",
@@ -140,6 +146,10 @@ def command_line(args: argparse.Namespace) -> str:
         if key in ("func", "command", "config", "set") or key in unused or value is None:
             continue
         flag = "--" + key.replace("_", "-")
+        if isinstance(value, bool):  # a switch: present or not
+            if value:
+                parts.append(flag)
+            continue
         if isinstance(value, (list, tuple)):
             if key.endswith("seeds"):
                 parts += [flag, seed_text(value)]
@@ -160,19 +170,19 @@ def _frames_of(path: str):
 
 
 def _arrays(path: str, size: tuple[int, int]) -> dict:
-    arrays, skipped = train.frames_to_arrays(_frames_of(path), *size)
+    arrays, skipped = train_data.frames_to_arrays(_frames_of(path), *size)
     n = len(arrays["rgb"])
     if n == 0:
         raise ValueError(f"{path}: no frame with semantic ground truth "
                          f"({skipped} frames without)")
-    known = (train.semantic_to_target(arrays["semantic"]) != train.IGNORE).mean()
+    known = (train_data.semantic_to_target(arrays["semantic"]) != train_data.IGNORE).mean()
     print(f"{path}: {n} frames with ground truth ({skipped} without, skipped); "
           f"{known * 100:.0f} % of pixels are known classes")
     return {"arrays": arrays, "skipped": skipped, "path": str(path)}
 
 
 def _concat(parts: list[dict]) -> dict:
-    return {k: np.concatenate([p[k] for p in parts]) for k in train.ARRAY_KEYS}
+    return {k: np.concatenate([p[k] for p in parts]) for k in train_data.ARRAY_KEYS}
 
 
 def data_from_files(paths: Sequence[str], val_paths: Sequence[str] | None, split: str,
@@ -248,7 +258,8 @@ def main(args: argparse.Namespace) -> int:
                          val_every=args.val_every, command=command_line(args),
                          data_seconds=time.time() - t0, arch=args.arch,
                          esanet_dataset=args.esanet_dataset,
-                         outlier_weight=args.outlier_weight, outlier_prob=args.outlier_prob)
+                         outlier_weight=args.outlier_weight, outlier_prob=args.outlier_prob,
+                         novelty_branch=args.novelty_branch)
     return 0
 
 

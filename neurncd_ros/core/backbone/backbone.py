@@ -66,6 +66,10 @@ class BackboneConfig:
                                    "after normalisation, as the public raw-sensor inference "
                                    "does; refined = 0 is normalised like any depth (hole-free "
                                    "depth only)", choices=("raw", "refined"))
+    novelty_branch: bool = param(True, "kind=default: use the weights' novelty branch when "
+                                 "they have one (an outlier-exposed head whose entropy flattens "
+                                 "the logits where it sees no known class; argmax unchanged); "
+                                 "false = the known-class logits alone")
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
     num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
                              "(0 = leave torch's setting); 1 because the "
@@ -194,6 +198,8 @@ def _load_default(cfg: BackboneConfig) -> Backbone:
                          + ("" if cfg.checkpoint else " (shipped default weights missing; "
                             "run `neurncd train-backbone`)"))
     net = small.load_weights(str(path), device=cfg.device)
+    if not cfg.novelty_branch:
+        net.novelty_branch = False  # the branch's weights stay loaded but unused
     return Backbone(net, "default", classes.CHANNEL_TO_ID.copy(), _input_size(cfg), cfg.device,
                     small.prepare_inputs)
 

@@ -13,9 +13,21 @@ the pre-softmax logit (the semantic embedding) of NYU-13 id
 Inputs are produced by :func:`prepare_inputs`: RGB normalised with ImageNet
 statistics, and depth as two channels (normalised metric depth, 0 at holes; a
 validity mask), so the net is told where the sensor gave no measurement.
+
+Optional *novelty branch* (issue 11, direction 2): a second copy of the last
+decoder stage and of the classifier, trained with outlier exposure on the
+frozen network (``train_backbone(..., novelty_branch=True)``). Its normalised
+entropy h sets a per-pixel temperature: the output logits are the known-class
+head's logits times ``max(1 - h, NOVELTY_FLOOR)``. Scaling by a positive factor
+keeps every pixel's argmax, so the known classes are labelled exactly as
+without the branch, while the softmax flattens (its entropy rises) where the
+branch sees something it was taught is no known class. Why not outlier exposure
+of the whole net: it costs known-class accuracy (bench/results/backbone_oe.json).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -37,6 +49,9 @@ enough for the frame budget on one core; timings in bench/results/backbone.json)
 
 ARCH_VERSION = 1
 """Bumped whenever the layout changes, so stale weights fail loudly."""
+
+NOVELTY_FLOOR = 0.05
+"""Smallest temperature factor of the novelty branch (keeps the argmax defined)."""
 
 
 def prepare_inputs(rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -163,11 +178,13 @@ class SmallRGBDNet(nn.Module):
     """
 
     def __init__(self, num_classes: int = classes.NUM_KNOWN,
-                 widths: tuple[int, int, int, int] = DEFAULT_WIDTHS) -> None:
+                 widths: tuple[int, int, int, int] = DEFAULT_WIDTHS,
+                 novelty_branch: bool = False) -> None:
         super().__init__()
         c0, c1, c2, c3 = widths
         self.num_classes = num_classes
         self.widths = tuple(widths)
+        self.novelty_branch = bool(novelty_branch)
         self.rgb_stem = ConvBNReLU(3, c0, 3, 2)
         self.depth_stem = ConvBNReLU(2, c0, 3, 2)
         self.rgb_stages = nn.ModuleList([_stage(c0, c1, (1,)), _stage(c1, c2, (1, 2)),
@@ -179,10 +196,14 @@ class SmallRGBDNet(nn.Module):
         self.decoder = nn.ModuleList([DecoderStage(c3, c2, c2), DecoderStage(c2, c1, c1),
                                       DecoderStage(c1, c0, c0)])
         self.classifier = nn.Conv2d(c0, num_classes, 1)
+        if self.novelty_branch:
+            self.novelty_decoder = DecoderStage(c1, c0, c0)
+            self.novelty_classifier = nn.Conv2d(c0, num_classes, 1)
 
-    def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor) -> torch.Tensor:
-        """Normalised inputs (see :func:`prepare_inputs`) -> (B, S, H, W) logits."""
-        size = x_rgb.shape[-2:]
+    def _decoder_input(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(input of the last decoder stage, its 1/2-resolution skip): what the known-class
+        head and the novelty branch both read."""
         r = self.rgb_stem(x_rgb)
         d = self.depth_stem(x_depth)
         r = self.fusions[0](r, d)
@@ -192,14 +213,51 @@ class SmallRGBDNet(nn.Module):
             r = self.fusions[i + 1](r, d)
             skips.append(r)
         x = self.context(skips[-1])
-        for dec, skip in zip(self.decoder, reversed(skips[:-1])):
+        for dec, skip in zip(self.decoder[:-1], reversed(skips[1:-1])):
             x = dec(x, skip)
-        logits = self.classifier(x)
-        return F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
+        return x, skips[0]
+
+    def _novelty(self, x: torch.Tensor, skip: torch.Tensor, size) -> torch.Tensor:
+        return F.interpolate(self.novelty_classifier(self.novelty_decoder(x, skip)), size=size,
+                             mode="bilinear", align_corners=False)
+
+    def heads(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(known-class logits, novelty-branch logits or None), both (B, S, H, W) at the
+        input size; the branch reads the same features as the last decoder stage."""
+        size = x_rgb.shape[-2:]
+        x, skip = self._decoder_input(x_rgb, x_depth)
+        logits = F.interpolate(self.classifier(self.decoder[-1](x, skip)), size=size,
+                               mode="bilinear", align_corners=False)
+        return logits, (self._novelty(x, skip, size) if self.novelty_branch else None)
+
+    def novelty_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Un-normalised batch -> (B, S, H, W) novelty-branch logits, the rest of the
+        network run without gradients (how the branch is trained on a frozen net)."""
+        x_rgb, x_depth = prepare_inputs(rgb, depth)
+        with torch.no_grad():
+            x, skip = self._decoder_input(x_rgb, x_depth)
+        return self._novelty(x, skip, x_rgb.shape[-2:])
+
+    def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor) -> torch.Tensor:
+        """Normalised inputs (see :func:`prepare_inputs`) -> (B, S, H, W) logits (with the
+        novelty branch: the known-class logits times its temperature factor)."""
+        logits, novelty = self.heads(x_rgb, x_depth)
+        if novelty is None:
+            return logits
+        return logits * novelty_temperature(novelty)
 
     def predict_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         """Un-normalised batch (rgb 0..255, depth metres) -> (B, S, H, W) logits."""
         return self(*prepare_inputs(rgb, depth))
+
+
+def novelty_temperature(novelty: torch.Tensor) -> torch.Tensor:
+    """(B, 1, H, W) factor ``max(1 - h, NOVELTY_FLOOR)``, h the normalised entropy of the
+    softmax of the novelty branch's (B, S, H, W) logits."""
+    logp = F.log_softmax(novelty, dim=1)
+    h = -(logp.exp() * logp).sum(dim=1, keepdim=True) / math.log(novelty.shape[1])
+    return (1.0 - h).clamp(min=NOVELTY_FLOOR)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -225,6 +283,7 @@ def save_weights(model: SmallRGBDNet, path: str, extra: dict | None = None,
              for k, v in model.state_dict().items()}
     torch.save({"arch": "SmallRGBDNet", "arch_version": ARCH_VERSION,
                 "num_classes": model.num_classes, "widths": list(model.widths),
+                "novelty_branch": model.novelty_branch,
                 "channel_to_id": np.asarray(classes.CHANNEL_TO_ID).tolist(),
                 "state_dict": state, "extra": extra or {}}, path)
 
@@ -245,7 +304,8 @@ def load_weights(path: str, device: str = "cpu") -> SmallRGBDNet:
     # The layers' initial weights are replaced by the file's; drawing them from a forked
     # generator leaves the process's global torch generator as it was (no hidden state).
     with torch.random.fork_rng(devices=[]):
-        model = SmallRGBDNet(int(blob["num_classes"]), tuple(blob["widths"]))
+        model = SmallRGBDNet(int(blob["num_classes"]), tuple(blob["widths"]),
+                             bool(blob.get("novelty_branch", False)))
     state = {k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()}
     model.load_state_dict(state, strict=True)
     return model.to(device).eval()

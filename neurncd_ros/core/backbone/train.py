@@ -7,7 +7,7 @@ novel classes and its pre-softmax logits stay an honest "known-class"
 embedding. Validation uses held-out frames (disjoint scenes or files).
 
 The data is injected: :func:`train_backbone` takes train and validation
-arrays (:func:`frames_to_arrays` makes them from any Frames with ground
+arrays (:func:`.data.frames_to_arrays` makes them from any Frames with ground
 truth) and a ``source`` record of where they came from, which goes into the
 training record. The synthetic scenes are one such source
 (``neurncd_ros.synth.training``); bags and dataset folders are others
@@ -29,7 +29,6 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 import torch
@@ -37,180 +36,8 @@ import torch.nn.functional as F
 
 from .. import classes
 from ..discovery.metrics import class_iou
-from ..frame import Frame
 from . import small
-
-IGNORE = 255
-"""Target value of pixels left out of the loss (void and novel classes)."""
-
-OUTLIER = 254
-"""Target value of pasted outlier pixels (outlier exposure): the loss pushes their
-prediction towards uniform instead of towards a class (:func:`paste_outliers`)."""
-
-# NYU-13 id -> training target (channel index for known classes, IGNORE otherwise).
-_ID_TO_TARGET = np.where(classes.KNOWN_CHANNEL >= 0, classes.KNOWN_CHANNEL,
-                         IGNORE).astype(np.uint8)
-
-
-def semantic_to_target(semantic: np.ndarray) -> np.ndarray:
-    """NYU-13 label image (uint16) -> uint8 targets: channel index, or IGNORE."""
-    if semantic.dtype != np.uint16:
-        raise ValueError(f"semantic must be uint16 NYU-13 ids, got {semantic.dtype}")
-    return _ID_TO_TARGET[semantic]
-
-
-# ----------------------------------------------------------------------------- data
-ARRAY_KEYS = ("rgb", "depth", "semantic")
-
-
-def check_arrays(data: dict[str, np.ndarray], what: str) -> int:
-    """Validate training arrays (rgb N,H,W,3 uint8; depth N,H,W float32; semantic N,H,W
-    uint16 NYU-13 ids); returns N or raises ValueError naming ``what``."""
-    missing = [k for k in ARRAY_KEYS if k not in data]
-    if missing:
-        raise ValueError(f"{what}: missing arrays {missing}; need {list(ARRAY_KEYS)}")
-    rgb, depth, sem = (np.asarray(data[k]) for k in ARRAY_KEYS)
-    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"{what}: rgb must be (N, H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    if depth.shape != rgb.shape[:3] or sem.shape != rgb.shape[:3]:
-        raise ValueError(f"{what}: depth {depth.shape} and semantic {sem.shape} must be "
-                         f"{rgb.shape[:3]}")
-    if sem.dtype != np.uint16:
-        raise ValueError(f"{what}: semantic must be uint16 NYU-13 ids, got {sem.dtype}")
-    if len(rgb) == 0:
-        raise ValueError(f"{what}: no frames")
-    return len(rgb)
-
-
-def frames_to_arrays(frames: Iterable[Frame], width: int = 320, height: int = 240
-                     ) -> tuple[dict[str, np.ndarray], int]:
-    """Frames with semantic ground truth -> training arrays at ``width`` x ``height``.
-
-    Every frame is resized to the size the backbone runs at (colour bilinear,
-    depth and labels nearest, so holes and class borders stay crisp); frames
-    without ground truth are skipped and counted. Returns (arrays, skipped).
-    """
-    import cv2
-
-    rgb, depth, sem = [], [], []
-    skipped = 0
-    for fr in frames:
-        if fr.semantic is None:
-            skipped += 1
-            continue
-        r, d, s = fr.rgb, fr.depth, fr.semantic
-        if d.shape != (height, width):
-            r = cv2.resize(r, (width, height), interpolation=cv2.INTER_AREA)
-            d = cv2.resize(d, (width, height), interpolation=cv2.INTER_NEAREST)
-            s = cv2.resize(s, (width, height), interpolation=cv2.INTER_NEAREST)
-        rgb.append(r)
-        depth.append(d.astype(np.float32))
-        sem.append(s.astype(np.uint16))
-    if not rgb:
-        return {"rgb": np.zeros((0, height, width, 3), np.uint8),
-                "depth": np.zeros((0, height, width), np.float32),
-                "semantic": np.zeros((0, height, width), np.uint16)}, skipped
-    return {"rgb": np.stack(rgb), "depth": np.stack(depth), "semantic": np.stack(sem)}, skipped
-
-
-# ----------------------------------------------------------------------------- augmentation
-def augment(rgb: torch.Tensor, depth: torch.Tensor, target: torch.Tensor,
-            gen: torch.Generator, scale: tuple[float, float] = (0.8, 1.35),
-            jitter: float = 0.25, crop: tuple[int, int] | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Random flip, scale-crop (zoom in/out with translation) and colour jitter, batched.
-
-    ``crop`` = (h, w) cuts windows of that size (at the sampled zoom) instead of
-    keeping the full frame: cheaper steps, same apparent object sizes.
-
-    rgb (B,3,H,W) float 0..255, depth (B,1,H,W) m, target (B,H,W) long with
-    IGNORE. One affine warp per sample (grid_sample): bilinear for rgb,
-    nearest for depth and labels; area outside the source is a depth hole
-    and ignored in the loss. Zooming changes apparent size but not metric
-    depth, which is what happens when the same object is seen at another
-    focal length.
-    """
-    b, _, h, w = rgb.shape
-    oh, ow = crop if crop is not None else (h, w)
-    s = torch.empty(b).uniform_(*scale, generator=gen)  # >1 zooms in
-    flip = (torch.rand(b, generator=gen) < 0.5).float() * 2 - 1
-    sx, sy = (ow / w) / s, (oh / h) / s  # window half-size in normalised source coords
-    tx = (torch.rand(b, generator=gen) * 2 - 1) * ((1 - sx).clamp(min=0) + 0.05)
-    ty = (torch.rand(b, generator=gen) * 2 - 1) * ((1 - sy).clamp(min=0) + 0.05)
-    theta = torch.zeros(b, 2, 3)
-    theta[:, 0, 0] = flip * sx
-    theta[:, 1, 1] = sy
-    theta[:, 0, 2] = tx
-    theta[:, 1, 2] = ty
-    grid = F.affine_grid(theta, [b, 1, oh, ow], align_corners=False)
-    rgb = F.grid_sample(rgb, grid, mode="bilinear", padding_mode="border", align_corners=False)
-    depth = F.grid_sample(depth, grid, mode="nearest", padding_mode="zeros", align_corners=False)
-    lab = F.grid_sample((target + 1).float()[:, None], grid, mode="nearest",
-                        padding_mode="zeros", align_corners=False)[:, 0].long() - 1
-    target = torch.where(lab < 0, torch.full_like(lab, IGNORE), lab)
-    # Colour jitter: brightness, contrast, saturation, per-channel gain.
-    bright = 1 + (torch.rand(b, 1, 1, 1, generator=gen) * 2 - 1) * jitter
-    contrast = 1 + (torch.rand(b, 1, 1, 1, generator=gen) * 2 - 1) * jitter
-    sat = 1 + (torch.rand(b, 1, 1, 1, generator=gen) * 2 - 1) * jitter
-    gain = 1 + (torch.rand(b, 3, 1, 1, generator=gen) * 2 - 1) * jitter * 0.3
-    grey = rgb.mean(dim=1, keepdim=True)
-    rgb = grey + (rgb - grey) * sat
-    mean = rgb.mean(dim=(1, 2, 3), keepdim=True)
-    rgb = (mean + (rgb - mean) * contrast) * bright * gain
-    rgb = rgb + torch.randn(rgb.shape, generator=gen) * 3.0  # sensor noise
-    return rgb.clamp(0, 255), depth, target
-
-
-def paste_outliers(rgb: torch.Tensor, target: torch.Tensor, gen: torch.Generator,
-                   prob: float = 0.5, size: tuple[float, float] = (0.1, 0.4),
-                   min_known: float = 0.97, tries: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
-    """Outlier exposure by cut and paste: colour that does not belong to its geometry.
-
-    Why: the network learns the known classes and nothing else, so an unseen
-    flat object on a wall (a picture, a screen) is confidently "wall"; the
-    entropy that discovery relies on never rises there. Here, with probability
-    ``prob`` per sample, a rectangle of another sample's colour (sides ``size``
-    of the window's) is pasted at a random place while the depth stays the
-    destination's, and its pixels get target :data:`OUTLIER`, whose loss asks for
-    a uniform prediction (:func:`loss_terms`). Only known classes are pasted: a
-    source rectangle with less than ``min_known`` known-class pixels (novel, void or
-    outside the frame) is not used, so the novel classes do not enter training,
-    not even as outliers; nor is one whose majority class is the destination's
-    (wall texture on a wall is not an outlier). Up to ``tries`` source places are
-    drawn per sample. Destination pixels that were IGNORE stay IGNORE.
-    rgb (B, 3, H, W), target (B, H, W) long; returns new tensors.
-    """
-    b, _, h, w = rgb.shape
-    rgb, target = rgb.clone(), target.clone()
-    if b < 2 or prob <= 0:
-        return rgb, target
-    src_rgb, src_tgt = rgb.clone(), target.clone()  # pastes read the unpasted batch
-    use = torch.rand(b, generator=gen) < prob
-    sides = torch.empty(b, 2).uniform_(*size, generator=gen)
-    dest = torch.rand(b, 2, generator=gen)
-    srcs = torch.rand(b, tries, 2, generator=gen)
-    n = classes.NUM_KNOWN
-    for i in torch.nonzero(use).flatten().tolist():
-        j = (i + 1) % b
-        ph, pw = max(int(sides[i, 0] * h), 2), max(int(sides[i, 1] * w), 2)
-        dy, dx = int(dest[i, 0] * (h - ph)), int(dest[i, 1] * (w - pw))
-        dst = target[i, dy:dy + ph, dx:dx + pw]
-        dst_known = dst[dst < n]
-        dst_major = int(torch.bincount(dst_known, minlength=n).argmax()) \
-            if dst_known.numel() else -1
-        for t in range(tries):
-            sy, sx = int(srcs[i, t, 0] * (h - ph)), int(srcs[i, t, 1] * (w - pw))
-            src = src_tgt[j, sy:sy + ph, sx:sx + pw]
-            known = src < n
-            if known.float().mean() < min_known or \
-                    int(torch.bincount(src[known], minlength=n).argmax()) == dst_major:
-                continue
-            rgb[i, :, dy:dy + ph, dx:dx + pw] = src_rgb[j, :, sy:sy + ph, sx:sx + pw]
-            target[i, dy:dy + ph, dx:dx + pw] = torch.where(dst == IGNORE, dst,
-                                                            torch.full_like(dst, OUTLIER))
-            break
-    return rgb, target
-
+from .data import IGNORE, OUTLIER, augment, check_arrays, paste_outliers, semantic_to_target
 
 # ----------------------------------------------------------------------------- metrics
 def confusion(pred: np.ndarray, target: np.ndarray, n: int = classes.NUM_KNOWN) -> np.ndarray:
@@ -247,6 +74,29 @@ def evaluate(model: torch.nn.Module, data: dict[str, np.ndarray], batch: int = 8
             pred = model.predict_raw(rgb, depth).argmax(1).numpy()
             conf += confusion(pred, semantic_to_target(data["semantic"][i: i + batch]))
     return scores_from_confusion(conf)
+
+
+def entropy_by_kind(model: torch.nn.Module, data: dict[str, np.ndarray], batch: int = 8
+                    ) -> dict[str, float]:
+    """Mean normalised entropy (entropy / log S) of ``model``'s softmax over the known-class
+    and over the novel-class pixels of ``data``: how well its uncertainty points at what
+    it never learnt (the cue discovery uses)."""
+    model.eval()
+    sums = {"known": [0.0, 0], "novel": [0.0, 0]}
+    novel_ids = np.array(classes.NOVEL_IDS)
+    with torch.inference_mode():
+        for i in range(0, len(data["rgb"]), batch):
+            rgb = torch.from_numpy(data["rgb"][i: i + batch]).permute(0, 3, 1, 2).float()
+            depth = torch.from_numpy(np.nan_to_num(data["depth"][i: i + batch], nan=0.0,
+                                                   posinf=0.0, neginf=0.0))[:, None]
+            logp = F.log_softmax(model.predict_raw(rgb, depth), dim=1)
+            ent = (-(logp.exp() * logp).sum(1) / math.log(logp.shape[1])).numpy()
+            sem = data["semantic"][i: i + batch]
+            for kind, sel in (("known", semantic_to_target(sem) < classes.NUM_KNOWN),
+                              ("novel", np.isin(sem, novel_ids))):
+                sums[kind][0] += float(ent[sel].sum())
+                sums[kind][1] += int(sel.sum())
+    return {k: (round(v / n, 4) if n else math.nan) for k, (v, n) in sums.items()}
 
 
 # ----------------------------------------------------------------------------- training
@@ -331,9 +181,10 @@ def loss_terms(logits: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
 
 def train_step(model: torch.nn.Module, opt: torch.optim.Optimizer, rgb: torch.Tensor,
                depth: torch.Tensor, target: torch.Tensor, weights: torch.Tensor,
-               outlier_weight: float = 0.0) -> dict[str, float]:
-    """One optimiser step on an (augmented) batch; returns the loss and its terms."""
-    logits = model.predict_raw(rgb, depth)
+               outlier_weight: float = 0.0, novelty_branch: bool = False) -> dict[str, float]:
+    """One optimiser step on an (augmented) batch; returns the loss and its terms.
+    ``novelty_branch``: the loss is on the novelty branch's logits (the rest frozen)."""
+    logits = model.novelty_raw(rgb, depth) if novelty_branch else model.predict_raw(rgb, depth)
     terms = loss_terms(logits, target, weights, outlier_weight)
     loss = sum(terms.values())
     opt.zero_grad(set_to_none=True)
@@ -350,7 +201,15 @@ def _init_from(model: small.SmallRGBDNet, init: str) -> dict:
     if prev_model.widths != model.widths:
         raise ValueError(f"--init {init} has widths {prev_model.widths}, "
                          f"training widths {model.widths}")
-    model.load_state_dict(prev_model.state_dict())
+    if prev_model.novelty_branch and not model.novelty_branch:
+        raise ValueError(f"--init {init} has a novelty branch; train it again with "
+                         "--novelty-branch or start from weights without one")
+    missing, _ = model.load_state_dict(prev_model.state_dict(), strict=False)
+    if any(not k.startswith("novelty_") for k in missing):
+        raise ValueError(f"--init {init} lacks weights {missing[:3]}")
+    if missing:  # a new novelty branch starts as a copy of the known-class head
+        model.novelty_decoder.load_state_dict(model.decoder[-1].state_dict())
+        model.novelty_classifier.load_state_dict(model.classifier.state_dict())
     rec_path = Path(init).with_suffix(".json")
     init_record = {"weights": str(init)}
     if rec_path.is_file():
@@ -371,7 +230,8 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                    widths: tuple[int, int, int, int] = small.DEFAULT_WIDTHS,
                    val_every: int = 0, data_seconds: float = 0.0, arch: str = "default",
                    esanet_dataset: str = "nyuv2", esanet_depth_mode: str = "raw",
-                   outlier_weight: float = 0.0, outlier_prob: float = 0.5) -> dict:
+                   outlier_weight: float = 0.0, outlier_prob: float = 0.5,
+                   novelty_branch: bool = False) -> dict:
     """Train the default net on ``train``, save weights to ``out_path`` and the record
     next to it (``<out_path stem>.json``); returns the record.
 
@@ -390,6 +250,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     with probability ``outlier_prob`` per sample a rectangle of another sample's
     known-class colour is pasted onto the destination's geometry and its prediction
     pushed towards uniform (:func:`paste_outliers`, :func:`loss_terms`).
+    ``novelty_branch`` trains only a novelty branch (:mod:`.small`) added to the
+    network ``init`` (which stays frozen, so its known-class argmax is unchanged),
+    with the cross-entropy and the outlier exposure on the branch's logits.
     """
     from tqdm import tqdm
 
@@ -400,6 +263,9 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     if outlier_weight < 0 or not 0.0 <= outlier_prob <= 1.0:
         raise ValueError(f"outlier_weight must be >= 0 and outlier_prob in [0, 1], got "
                          f"{outlier_weight}, {outlier_prob}")
+    if novelty_branch and (arch != "default" or not init or outlier_weight <= 0):
+        raise ValueError("novelty_branch trains a branch on a trained default net: it needs "
+                         "arch 'default', init=<weights> and outlier_weight > 0")
     if arch not in ("default", "esanet"):
         raise ValueError(f"arch must be 'default' or 'esanet', got {arch!r}")
     if arch == "esanet":
@@ -429,9 +295,22 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     else:
         with torch.random.fork_rng(devices=[]):  # seeded init, torch's global RNG untouched
             torch.manual_seed(seed)
-            model = small.SmallRGBDNet(widths=tuple(widths))
+            model = small.SmallRGBDNet(widths=tuple(widths), novelty_branch=novelty_branch)
         init_record = _init_from(model, init) if init else None
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+    if novelty_branch:
+        for name, p in model.named_parameters():
+            p.requires_grad_(name.startswith("novelty_"))
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=lr,
+                            weight_decay=weight_decay)
+
+    def train_mode() -> None:
+        """Train mode; with the branch only the branch (the frozen net's batch-norm
+        statistics must not drift)."""
+        if novelty_branch:
+            model.eval()
+            model.novelty_decoder.train()
+        else:
+            model.train()
     warmup = max(min(100, total_steps // 20), 1)
 
     def lr_at(step: int, total: int) -> float:
@@ -447,7 +326,7 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
     bar = tqdm(total=total_steps, desc="train backbone", disable=not progress, unit="step")
     stop = False
     for epoch in range(epochs):
-        model.train()
+        train_mode()
         order = rng.permutation(n)
         logs: list[dict[str, float]] = []
         for i in range(steps_per_epoch):
@@ -460,7 +339,8 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                 rgb, tgt = paste_outliers(rgb, tgt, gen, outlier_prob)
             for g in opt.param_groups:
                 g["lr"] = lr_at(step, total_steps)
-            logs.append(train_step(model, opt, rgb, depth, tgt, weights, outlier_weight))
+            logs.append(train_step(model, opt, rgb, depth, tgt, weights, outlier_weight,
+                                   novelty_branch))
             step += 1
             bar.update(1)
             bar.set_postfix(epoch=epoch,
@@ -475,7 +355,7 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                 score = evaluate(model, val)["miou_known"]
                 val_curve.append({"step": step, "val_miou_known": round(score, 2)})
                 tqdm.write(f"step {step}: validation known-class mIoU {score:.2f} %")
-                model.train()
+                train_mode()
             if step >= total_steps:
                 stop = True
                 break
@@ -499,6 +379,7 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
         small.save_weights(model, str(out_path))
         shipped = small.load_weights(str(out_path))  # what users get: fp16 weights
     val_scores = evaluate(shipped, val, progress=progress)
+    val_entropy = entropy_by_kind(shipped, val)
     source = dict(source) if source else {"trained_on": "arrays"}
     record = {
         "command": command if command is not None else " ".join(sys.argv),
@@ -520,12 +401,16 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                     f"; outlier exposure weight {outlier_weight}: with probability "
                     f"{outlier_prob} per sample a known-class colour rectangle of another "
                     "sample pasted on the destination's depth, pushed towards uniform"
-                    if outlier_weight > 0 else ""),
+                    if outlier_weight > 0 else "") + (
+                    "; trained on a novelty branch only (the rest of --init frozen), whose "
+                    "entropy scales the known-class logits" if novelty_branch else ""),
         "outlier_weight": outlier_weight, "outlier_prob": outlier_prob,
+        "novelty_branch": novelty_branch,
         "augmentation": f"flip, zoom 0.8-1.35, crop {crop}, colour jitter 0.25, rgb noise",
         "val_miou_known": round(val_scores["miou_known"], 2),
         "val_pixel_accuracy": round(val_scores["pixel_accuracy"], 4),
         "val_iou": val_scores["iou"],
+        "val_entropy_known": val_entropy["known"], "val_entropy_novel": val_entropy["novel"],
         "history": history, "val_curve": val_curve, "init": init_record,
         "data_seconds": round(data_seconds, 1), "train_seconds": round(train_time, 1),
         "total_seconds": round(time.time() - t_start + data_seconds, 1),
@@ -552,7 +437,9 @@ def summary(record: dict) -> str:
             f"{record['train_frames']} frames) in {record['train_seconds'] / 60:.1f} min\n"
             f"validation {_val_text(record)}: known-class mIoU "
             f"{record['val_miou_known']:.2f} %, pixel accuracy "
-            f"{record['val_pixel_accuracy'] * 100:.1f} %\nper-class IoU: {ious}")
+            f"{record['val_pixel_accuracy'] * 100:.1f} %\nper-class IoU: {ious}\n"
+            f"mean normalised entropy: known pixels {record['val_entropy_known']:.3f}, "
+            f"novel pixels {record['val_entropy_novel']:.3f}")
 
 
 def _val_text(record: dict) -> str:
