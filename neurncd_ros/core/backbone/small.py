@@ -22,7 +22,7 @@ head's logits times ``max(1 - h, NOVELTY_FLOOR)``. Scaling by a positive factor
 keeps every pixel's argmax, so the known classes are labelled exactly as
 without the branch, while the softmax flattens (its entropy rises) where the
 branch sees something it was taught is no known class. Why not outlier exposure
-of the whole net: it costs known-class accuracy (bench/results/backbone_oe.json).
+of the whole net: it costs known-class accuracy (bench/results/backbone_oe_wholenet.json).
 """
 
 from __future__ import annotations
