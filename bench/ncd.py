@@ -35,8 +35,10 @@ the report gives the mean over scenes. Rows of the report (percent):
   backbone, before issue 11) instead of the keyframe fusion; ``fusion_logits``:
   the keyframe fusion averaging logits instead of class probabilities;
   ``disagreement_2``: the views' disagreement added twice to the view's entropy
-  (``mapper_node.disagreement_weight`` 2, off by default) (these rows render the
-  scenes again);
+  (``mapper_node.disagreement_weight`` 2, off by default); ``no_novelty_branch``:
+  the backbone's known-class logits without its outlier-exposed novelty branch
+  (``backbone.novelty_branch`` false: the same argmax, the head's own entropy)
+  (these rows render the scenes again);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -291,6 +293,9 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
     one (what the view is where the field has not learnt the scene)."""
     rows = {f"fallback_{v}": {"mapper_node.fallback": v} for v in ("backbone", "keyframes")
             if v != base.mapper_node.fallback}
+    if base.backbone.kind == "default" and base.backbone.novelty_branch and getattr(
+            load_backbone(base.backbone).net, "novelty_branch", False):
+        rows["no_novelty_branch"] = {"backbone.novelty_branch": False}
     other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
     if base.mapper_node.fallback == "keyframes":
         rows[f"fusion_{other}"] = {"mapper_node.fusion": other}

@@ -361,3 +361,29 @@ def test_novel_clusters_close_in_descriptor_space_share_one_id():
     assert merged["A"] != merged["B"] and min(merged["A"] | merged["B"]) >= NOVEL_ID_START
     apart, _ = named(0.0)
     assert len(apart["A"]) == 2 and apart["A"].isdisjoint(apart["B"])
+
+
+def test_uncertain_pixels_without_segment_join_the_nearest_novel_label():
+    """The band between two pieces of a novel object (no segment, uncertain) takes the
+    object's novel id within novel_fill_px; confident or far pixels keep their argmax."""
+    layout = [("wall", (0, 20, 0, 80)), ("A", (22, 32, 0, 12)), ("A", (22, 32, 16, 28)),
+              ("floor", (45, 60, 0, 80)), ("A", (22, 32, 40, 52))]
+    seg, emb, ent, kinds = _frame(layout, 0)
+    rng = np.random.default_rng(5)
+    # An uncertain gap between the first two pieces, and an uncertain patch far away.
+    for r0, r1, c0, c1 in ((22, 32, 12, 16), (38, 43, 70, 76)):
+        emb[r0:r1, c0:c1] = _logits("A", rng, (r1 - r0) * (c1 - c0)).reshape(r1 - r0,
+                                                                              c1 - c0, S)
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    # W = 80 px: 80 px at the 640 px reference width reach 10 px here.
+    lab = _discoverer(novel_fill_px=80).process_segments(seg, emb, ent)
+    a, share = _label_of(lab, kinds, "A")
+    assert a >= NOVEL_ID_START and share == 1.0
+    assert (lab[22:32, 12:16] == a).all()
+    far = lab[38:43, 70:76]
+    assert (far == CHANNEL_TO_ID[emb[38:43, 70:76].argmax(-1)]).all()
+    # Confident pixels without a segment next to the object keep the argmax (wall).
+    assert (lab[20:22, 0:28] == CLASS_ID["wall"]).all()
+    off = _discoverer(novel_fill_px=0).process_segments(seg, emb, ent)
+    assert (off[22:32, 12:16] < NOVEL_ID_START).all()

@@ -7,6 +7,9 @@ kinds are available:
 - ``default``: the project's small RGB-D net (:mod:`.small`), trained on the
   synthetic scenes with the 9 known NYU-13 classes; S = 9 and channel k
   predicts ``classes.KNOWN_IDS[k]``; weights ship in ``neurncd_ros/models``.
+  Weights with a novelty branch (the shipped ones) scale each pixel's logits by
+  a temperature factor from that outlier-exposed branch (``novelty_branch``):
+  the argmax is the known-class head's, the entropy rises on what it never saw.
 - ``esanet``: ESANet R34-NBt1D from a public checkpoint (:mod:`.esanet`);
   S = 40 (NYUv2) or 37 (SUN RGB-D), channel k predicts the NYU-40 class
   k + 1, mapped to NYU-13 by ``channel_to_id``.

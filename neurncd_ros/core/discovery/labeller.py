@@ -53,7 +53,9 @@ threshold names nearly every novel object a known class.
 
 Every pixel of a processed frame gets a label: segment pixels get their
 cluster's label; pixels without a segment (no depth, edges left unassigned,
-undecided clusters) get the known class of the per-pixel embedding argmax.
+undecided clusters) get the known class of the per-pixel embedding argmax,
+except that those whose entropy is above the threshold take the nearest novel
+label within ``novel_fill_px`` (the bands between the pieces of a novel object).
 Label 0 is produced only at pixels outside every decided segment whose
 embedding is not finite.
 
@@ -66,6 +68,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -114,6 +117,11 @@ class DiscoveryConfig:
                                         "descriptors are closer than this (Euclidean, single "
                                         "link) share one novel id (one object that Markov "
                                         "clustering split; 0 = off)", lo=0.0, hi=100.0)
+    novel_fill_px: int = param(16, "pixels without a segment whose entropy is above "
+                               "entropy_threshold take the nearest novel label within this "
+                               "distance instead of the per-pixel argmax (at "
+                               "segmentation.reference_width, scaled with the image; 0 = off)",
+                               lo=0, hi=1000, unit="px")
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
 
 
@@ -238,7 +246,7 @@ class Discoverer:
         seg_label = np.full(n, UNDECIDED, np.int64)
         mine = self._mem.frame == self._frames - 1
         seg_label[self._mem.uid[mine] - (self._next_uid - n)] = self._mem.cluster[mine]
-        labels = self._paint(segments, seg_label, embedding)
+        labels = self._paint(segments, seg_label, embedding, entropy)
         self.last_segments = segments
         ids, counts = np.unique(labels, return_counts=True)
         self._last_counts = dict(zip(ids.tolist(), counts.tolist()))
@@ -401,15 +409,41 @@ class Discoverer:
 
     # ------------------------------------------------------------ output
 
-    def _paint(self, segments: np.ndarray, seg_label: np.ndarray, embedding: np.ndarray
-               ) -> np.ndarray:
-        """Label image: segment labels, per-pixel argmax known class elsewhere."""
+    def _paint(self, segments: np.ndarray, seg_label: np.ndarray, embedding: np.ndarray,
+               entropy: np.ndarray | None = None) -> np.ndarray:
+        """Label image: segment labels, per-pixel argmax known class elsewhere; with
+        ``novel_fill_px``, uncertain pixels without a segment near a novel label take it.
+
+        Why the fill: colour and geometry edges, and pieces too small to be a segment,
+        leave bands of pixels without a segment inside and around a novel object (a
+        window's glazing bars, a picture's frame); their argmax is the backbone's
+        "wall", so the object would be cut up and its id would cover a different part
+        in every frame. Pixels the embedding itself is unsure of (entropy above the
+        known/novel threshold) belong with the nearest novel label instead.
+        """
         finite = np.all(np.isfinite(embedding), axis=2)
         fallback = np.where(finite, self.channel_to_id[np.argmax(
             np.nan_to_num(embedding, nan=-np.inf), axis=2)], 0).astype(np.uint16)
         lab = np.where(segments >= 0, seg_label[np.maximum(segments, 0)] if seg_label.size
                        else UNDECIDED, UNDECIDED)
-        return np.where(lab > 0, lab, fallback).astype(np.uint16)
+        out = np.where(lab > 0, lab, fallback).astype(np.uint16)
+        reach = self.cfg.novel_fill_px * segments.shape[1] / self.seg_cfg.reference_width
+        if reach <= 0 or entropy is None:
+            return out
+        novel = out >= NOVEL_ID_START
+        hot = (lab <= 0) & (np.nan_to_num(entropy, nan=0.0)
+                            > self.cfg.entropy_threshold * np.log(self.S))
+        if not novel.any() or not hot.any():
+            return out
+        dist, near = cv2.distanceTransformWithLabels((~novel).astype(np.uint8), cv2.DIST_L2,
+                                                     5, labelType=cv2.DIST_LABEL_PIXEL)
+        # Distance-transform label -> flat index of its novel pixel.
+        src = np.flatnonzero(novel.ravel())
+        owner = np.zeros(int(near.max()) + 1, np.int64)
+        owner[near.ravel()[src]] = src
+        take = hot & (dist <= reach)
+        out[take] = out.ravel()[owner[near[take]]]
+        return out
 
     def classes(self) -> dict[int, dict]:
         """{id: {"name", "kind": "known"|"novel", "pixels": count in the last labelled frame}}."""
