@@ -360,6 +360,17 @@ def test_novelty_branch_keeps_the_argmax_and_raises_entropy_on_outliers(tmp_path
     assert rec["val_entropy_novel"] == pytest.approx(ent["nov"]["novel"], abs=1e-3)
     assert ent["nov"]["novel"] > ent["plain"]["novel"] + 0.2
     assert ent["nov"]["novel"] > 3 * ent["nov"]["known"]
+    # Through the Backbone interface: backbone.novelty_branch false gives the frozen
+    # net's own logits; true (the default) the scaled ones, with the same argmax.
+    frame_rgb, frame_depth = val["rgb"][0], val["depth"][0]
+    with_branch = bb.load_backbone(bb.BackboneConfig(checkpoint=str(tmp_path / "nov.pt")))
+    without = bb.load_backbone(bb.BackboneConfig(checkpoint=str(tmp_path / "nov.pt"),
+                                                 novelty_branch=False))
+    ref = bb.load_backbone(bb.BackboneConfig(checkpoint=str(base))).predict(frame_rgb,
+                                                                            frame_depth)
+    np.testing.assert_array_equal(without.predict(frame_rgb, frame_depth), ref)
+    scaled = with_branch.predict(frame_rgb, frame_depth)
+    assert (scaled.argmax(-1) == ref.argmax(-1)).all() and not np.allclose(scaled, ref)
 
 
 def test_synth_cache_is_keyed_by_the_generator_source(tmp_path, monkeypatch):
