@@ -305,7 +305,7 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
 
 
 GRID = {
-    "discovery.entropy_threshold": [0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.6],
+    "discovery.entropy_threshold": [0.15, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8],
     "discovery.majority_share": [0.4, 0.5, 0.6, 0.7, 0.8],
     "mcl.inflation": [1.2, 1.4, 1.6, 2.0, 2.5],
     "mcl.eta": [3.0, 6.0, 10.0],

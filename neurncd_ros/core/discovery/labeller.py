@@ -44,12 +44,15 @@ Per processed frame (:meth:`Discoverer.process`):
    tuning seeds: 0.3-0.5 score alike, 0.6 merges classes;
    bench/results/ncd_sweep_novel_merge_distance.json).
 
-Defaults (``entropy_threshold`` 0.15, ``min_cluster_segments`` 1,
-``segment_novelty`` on; with mcl's and modulation's) were chosen by
-``bench/ncd.py --tune`` on the rendered embedding of 8 tuning scenes
-(``seeds.TUNE``; scores in bench/results/ncd_tuning.json). The threshold is
-low because the default backbone is confident even on novel objects: a high
-threshold names nearly every novel object a known class.
+Defaults (``min_cluster_segments`` 1, ``segment_novelty`` on; with mcl's and
+modulation's) were chosen by ``bench/ncd.py --tune`` on the rendered embedding
+of 8 tuning scenes (``seeds.TUNE``; scores in bench/results/ncd_tuning.json).
+``entropy_threshold`` 0.6 was chosen for the shipped backbone's novelty branch
+on the same scenes (bench/results/ncd_sweep_entropy_threshold.json): the branch
+makes the normalised entropy of pictures, windows and TVs high and that of
+known classes low, so the threshold sits between them; without the branch
+(``backbone.novelty_branch`` false) the net is confident even on novel objects
+and a threshold near 0.15 is needed.
 
 Every pixel of a processed frame gets a label: segment pixels get their
 cluster's label; pixels without a segment (no depth, edges left unassigned,
@@ -91,7 +94,7 @@ class DiscoveryConfig:
                                lo=1, hi=10000)
     recluster_period: int = param(1, "re-cluster the memory every this many frames", lo=1,
                                   hi=10000)
-    entropy_threshold: float = param(0.15, "known if mean entropy / log(S) is below this",
+    entropy_threshold: float = param(0.6, "known if mean entropy / log(S) is below this",
                                      lo=0.0, hi=1.0)
     majority_share: float = param(0.5, "known if the majority argmax channel holds this share "
                                   "of the cluster's pixels", lo=0.0, hi=1.0)
