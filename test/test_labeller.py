@@ -387,3 +387,30 @@ def test_uncertain_pixels_without_segment_join_the_nearest_novel_label():
     assert (lab[20:22, 0:28] == CLASS_ID["wall"]).all()
     off = _discoverer(novel_fill_px=0).process_segments(seg, emb, ent)
     assert (off[22:32, 12:16] < NOVEL_ID_START).all()
+
+
+def test_uncertain_region_without_depth_becomes_a_novel_segment():
+    """A large region the segmentation leaves out (here: no depth, as on glass) whose
+    embedding is unsure gets a novel id of its own; a small one, or the feature off,
+    keeps the per-pixel argmax."""
+    rng = np.random.default_rng(3)
+    depth = np.full((H, W), 2.0, np.float32)
+    emb = _logits("wall", rng, H * W).reshape(H, W, S)
+    hole, speck = (slice(22, 34), slice(40, 66)), (slice(50, 53), slice(5, 8))
+    for r, c in (hole, speck):
+        depth[r, c] = 0.0
+        n = (r.stop - r.start) * (c.stop - c.start)
+        emb[r, c] = _logits("A", rng, n).reshape(r.stop - r.start, c.stop - c.start, S)
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    assert ent[hole].mean() > 0.6 * np.log(S) > ent[:20].mean()
+    intr = Intrinsics.from_hfov(W, H)
+    # W = 80: 1200 px at the 640 px reference width are 19 px here.
+    kw = dict(min_cluster_segments=1, uncertain_region_entropy=0.6)
+    lab = _discoverer(uncertain_region_px=1200, **kw).process(depth, intr, emb, ent)
+    vals, counts = np.unique(lab[hole], return_counts=True)
+    assert vals[np.argmax(counts)] >= NOVEL_ID_START and counts.max() == lab[hole].size
+    assert (lab[speck] == CHANNEL_TO_ID[emb[speck].argmax(-1)]).all()
+    assert (lab[:20] == CLASS_ID["wall"]).mean() > 0.95
+    off = _discoverer(uncertain_region_px=0, **kw).process(depth, intr, emb, ent)
+    assert (off[hole] < NOVEL_ID_START).all()

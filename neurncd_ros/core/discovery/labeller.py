@@ -54,6 +54,9 @@ known classes low, so the threshold sits between them; without the branch
 (``backbone.novelty_branch`` false) the net is confident even on novel objects
 and a threshold near 0.15 is needed.
 
+Large connected regions the depth segmentation leaves out (no depth, pieces
+dissolved as too small) whose per-pixel entropy is high become segments of
+their own first (``uncertain_region_px``): a window is often such a region.
 Every pixel of a processed frame gets a label: segment pixels get their
 cluster's label; pixels without a segment (no depth, edges left unassigned,
 undecided clusters) get the known class of the per-pixel embedding argmax,
@@ -125,6 +128,13 @@ class DiscoveryConfig:
                                "distance instead of the per-pixel argmax (at "
                                "segmentation.reference_width, scaled with the image; 0 = off)",
                                lo=0, hi=1000, unit="px")
+    uncertain_region_px: int = param(1200, "connected regions of pixels without a segment "
+                                     "whose entropy is above uncertain_region_entropy become "
+                                     "segments of their own if at least this large (at "
+                                     "segmentation.reference_width, scaled by area; 0 = off)",
+                                     lo=0, hi=10**9, unit="px")
+    uncertain_region_entropy: float = param(0.85, "uncertain_region_px: per-pixel entropy / "
+                                            "log(S) above this", lo=0.0, hi=1.0)
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
 
 
@@ -215,9 +225,38 @@ class Discoverer:
         # changes (geoseg's appearance and colour edges): flush pictures, TVs, windows
         # and doors leave the wall.
         segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
+        segments = self._uncertain_regions(segments, entropy)
         labels = self.process_segments(segments, embedding, entropy, colour)
         self.last_stamp_ns = int(stamp_ns)
         return labels
+
+    def _uncertain_regions(self, segments: np.ndarray, entropy: np.ndarray) -> np.ndarray:
+        """Segments for large connected regions the segmentation left out whose
+        per-pixel entropy is high (``uncertain_region_px``, ``uncertain_region_entropy``).
+
+        Why: a window's glazing bars and frame, its noisy or missing depth and its
+        colour edges cut it into pieces below ``segmentation.min_segment_size``, which
+        are dissolved; the whole window then had no segment and took the backbone's
+        per-pixel "wall". Where the embedding itself is unsure over a large region, that
+        region is evidence to cluster like any segment (on the tuning scenes, window IoU
+        38.7 -> 65; bench/results/ncd_sweep_uncertain_region_px.json).
+        """
+        area = self.cfg.uncertain_region_px * (segments.shape[1] / self.seg_cfg.reference_width) ** 2
+        if self.cfg.uncertain_region_px <= 0:
+            return segments
+        hot = (segments < 0) & (np.nan_to_num(np.asarray(entropy), nan=0.0)
+                                > self.cfg.uncertain_region_entropy * np.log(self.S))
+        if not hot.any():
+            return segments
+        n, comp, stats, _ = cv2.connectedComponentsWithStats(hot.astype(np.uint8),
+                                                              connectivity=4)
+        big = stats[:, cv2.CC_STAT_AREA] >= max(area, 1)
+        big[0] = False  # background
+        if not big.any():
+            return segments
+        new_id = np.full(n, -1, np.int64)
+        new_id[big] = int(segments.max()) + 1 + np.arange(int(big.sum()))
+        return np.where(comp > 0, new_id[comp], segments).astype(segments.dtype)
 
     def process_segments(self, segments: np.ndarray, embedding: np.ndarray,
                          entropy: np.ndarray, colour: np.ndarray | None = None) -> np.ndarray:
