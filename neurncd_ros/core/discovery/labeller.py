@@ -241,9 +241,10 @@ class Discoverer:
         region is evidence to cluster like any segment (on the tuning scenes, window IoU
         38.7 -> 65; bench/results/ncd_sweep_uncertain_region_px.json).
         """
-        area = self.cfg.uncertain_region_px * (segments.shape[1] / self.seg_cfg.reference_width) ** 2
         if self.cfg.uncertain_region_px <= 0:
             return segments
+        scale = segments.shape[1] / self.seg_cfg.reference_width
+        area = self.cfg.uncertain_region_px * scale * scale
         hot = (segments < 0) & (np.nan_to_num(np.asarray(entropy), nan=0.0)
                                 > self.cfg.uncertain_region_entropy * np.log(self.S))
         if not hot.any():
