@@ -37,8 +37,10 @@ the report gives the mean over scenes. Rows of the report (percent):
   ``disagreement_2``: the views' disagreement added twice to the view's entropy
   (``mapper_node.disagreement_weight`` 2, off by default); ``no_novelty_branch``:
   the backbone's known-class logits without its outlier-exposed novelty branch
-  (``backbone.novelty_branch`` false: the same argmax, the head's own entropy)
-  (these rows render the scenes again);
+  (``backbone.novelty_branch`` false: the same argmax, the head's own entropy,
+  with the entropy threshold tuned for it, 0.15) (these rows render the scenes again);
+- ``uncertain_regions``: large high-entropy regions without a segment become segments
+  (``discovery.uncertain_region_px`` 1200, off by default);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -295,7 +297,9 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
             if v != base.mapper_node.fallback}
     if base.backbone.kind == "default" and base.backbone.novelty_branch and getattr(
             load_backbone(base.backbone).net, "novelty_branch", False):
-        rows["no_novelty_branch"] = {"backbone.novelty_branch": False}
+        # The threshold tuned for the net without its branch (labeller docstring).
+        rows["no_novelty_branch"] = {"backbone.novelty_branch": False,
+                                     "discovery.entropy_threshold": 0.15}
     other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
     if base.mapper_node.fallback == "keyframes":
         rows[f"fusion_{other}"] = {"mapper_node.fusion": other}
@@ -540,6 +544,8 @@ def main() -> None:
             with_overrides(base, {"modulation.colour_weight": 0.0,
                                   "discovery.mode_split": False}), "logits"),
         "backbone": (base, "argmax"),
+        **({} if base.discovery.uncertain_region_px else {"uncertain_regions": (
+            with_overrides(base, {"discovery.uncertain_region_px": 1200}), "rendered")}),
     }
     variants.update({name: (cfg, "rendered") for name, (cfg, _) in engine.items()})
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
