@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -515,3 +516,29 @@ def test_esanet_fine_tunes_on_known_classes_and_loads_as_esanet(tmp_path):
         esanet.load_esanet_checkpoint(start).state_dict().values(),
         b.net.state_dict().values()))
     assert moved
+
+
+def test_threshold_tuned_for_a_branch_warns_without_one():
+    """The shipped weights carry a novelty branch and the default threshold is tuned for
+    it; weights without one (or the branch off) with that threshold get a warning, in
+    the offline engine as in the embedding node, naming the value to use instead."""
+    from neurncd_ros import config
+    from neurncd_ros.core.engine.offline import OfflineEngine
+
+    shipped = bb.load_backbone(bb.BackboneConfig())
+    assert shipped.novelty_branch
+    default_threshold = config.load(None, {}).discovery.entropy_threshold
+    assert bb.threshold_warning(shipped, default_threshold) is None
+    off = bb.load_backbone(bb.BackboneConfig(novelty_branch=False))
+    assert not off.novelty_branch
+    advice = bb.threshold_warning(off, default_threshold)
+    assert advice and "0.15" in advice and "novelty branch" in advice
+    assert bb.threshold_warning(off, 0.15) is None
+    cfg = config.load(None, config.parse_overrides(["backbone.novelty_branch=false"]))
+    with pytest.warns(UserWarning, match="no novelty branch"):
+        OfflineEngine(cfg)
+    cfg = config.load(None, config.parse_overrides(["backbone.novelty_branch=false",
+                                                     "discovery.entropy_threshold=0.15"]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        OfflineEngine(cfg)

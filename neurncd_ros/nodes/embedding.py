@@ -10,7 +10,8 @@ is published once, latched, on ``topics.embedding_spec``.
 from __future__ import annotations
 
 from ..core import msgconv
-from ..core.backbone.backbone import load_backbone  # before rclpy: scipy/torch load first
+# before rclpy: scipy/torch load first
+from ..core.backbone.backbone import load_backbone, threshold_warning
 from ..core.engine.embedding import EmbeddingStage
 from ..core.engine.health import Health
 from ..core.engine.worker import Worker
@@ -42,7 +43,11 @@ def make_node():
                                         self.health)
             spec = self.stage.spec
             self.get_logger().info(f"backbone {spec.backbone}: {spec.logit_channels} logit + "
-                                   f"{spec.feature_channels} feature channels")
+                                   f"{spec.feature_channels} feature channels, novelty branch "
+                                   f"{'on' if self.stage.backbone.novelty_branch else 'off'}")
+            advice = threshold_warning(self.stage.backbone, self.cfg.discovery.entropy_threshold)
+            if advice:
+                self.get_logger().warn(advice)
             self.frame_id = self.topics.camera_frame
             self.pub = self.create_publisher(Image, self.topics.embedding, output_qos())
             self.pub_spec = self.create_publisher(String, self.topics.embedding_spec,

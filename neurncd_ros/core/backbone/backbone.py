@@ -137,6 +137,12 @@ class Backbone:
         return self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
 
     @property
+    def novelty_branch(self) -> bool:
+        """Whether the embedding's entropy comes with a novelty branch's temperature
+        (the shipped default weights, unless ``backbone.novelty_branch`` is false)."""
+        return bool(getattr(self.net, "novelty_branch", False))
+
+    @property
     def spec(self) -> EmbeddingSpec:
         """What the channels of :meth:`embed`'s output mean (travels with the embedding)."""
         return EmbeddingSpec(tuple(int(i) for i in self.channel_to_id), 0, self.kind)
@@ -190,6 +196,27 @@ def _input_size(cfg: BackboneConfig) -> tuple[int, int]:
                          f"(its decoder joins stride-32 features), got {w}x{h}; "
                          f"use 640x480 or 320x256")
     return w, h
+
+
+BRANCH_THRESHOLD = 0.3
+"""Above this ``discovery.entropy_threshold`` is one tuned for a novelty branch."""
+
+
+def threshold_warning(backbone: Backbone, entropy_threshold: float) -> str | None:
+    """A warning when ``discovery.entropy_threshold`` was tuned for a novelty branch the
+    backbone does not have, else None.
+
+    Why: without the branch a net is confident on most novel objects (its normalised
+    entropy there is about 0.1-0.3), so the default threshold (0.6, tuned for the shipped
+    branch) calls nearly every novel object a known class, silently.
+    """
+    if backbone.novelty_branch or entropy_threshold <= BRANCH_THRESHOLD:
+        return None
+    return (f"the {backbone.kind} backbone has no novelty branch (or backbone.novelty_branch "
+            f"is false), but discovery.entropy_threshold is {entropy_threshold:g}, a value "
+            f"for the shipped weights' branch: few novel objects will be found. Without a "
+            f"branch the tuned value for the default net is 0.15; tune it on your data "
+            f"(README, 'Uncertainty on what your net never saw')")
 
 
 def _load_default(cfg: BackboneConfig) -> Backbone:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
 
@@ -81,10 +82,13 @@ class OfflineEngine:
 
     def __init__(self, cfg, backbone=None, make_mapper: Callable[[int], Any] | None = None
                  ) -> None:
-        from ..backbone.backbone import load_backbone
+        from ..backbone.backbone import load_backbone, threshold_warning
 
         self.cfg = cfg
         self.backbone = backbone if backbone is not None else load_backbone(cfg.backbone)
+        advice = threshold_warning(self.backbone, cfg.discovery.entropy_threshold)
+        if advice:
+            warnings.warn(advice, stacklevel=2)
         self.embedding = EmbeddingStage(self.backbone, cfg.embedding_node)
         self.mapping = MapperStage(cfg.mapper_node, make_mapper or mapper_factory(cfg),
                                    online=False)
