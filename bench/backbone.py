@@ -203,7 +203,7 @@ def main() -> int:
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).
     res.update(accuracy(backbone, 5 if args.quick else 1, seeds.TEST[:5], "test")[0])
-    if getattr(backbone.net, "novelty_branch", False):
+    if backbone.novelty_branch:
         # The same weights without their novelty branch (backbone.novelty_branch false):
         # the same argmax, the known-class head's own entropy.
         plain = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,

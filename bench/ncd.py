@@ -295,8 +295,7 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
     one (what the view is where the field has not learnt the scene)."""
     rows = {f"fallback_{v}": {"mapper_node.fallback": v} for v in ("backbone", "keyframes")
             if v != base.mapper_node.fallback}
-    if base.backbone.kind == "default" and base.backbone.novelty_branch and getattr(
-            load_backbone(base.backbone).net, "novelty_branch", False):
+    if base.backbone.kind == "default" and load_backbone(base.backbone).novelty_branch:
         # The threshold tuned for the net without its branch (labeller docstring).
         rows["no_novelty_branch"] = {"backbone.novelty_branch": False,
                                      "discovery.entropy_threshold": 0.15}

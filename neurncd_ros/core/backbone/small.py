@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import classes
+from ..uncertainty import entropy
 
 RGB_MEAN = (0.485, 0.456, 0.406)
 RGB_STD = (0.229, 0.224, 0.225)
@@ -255,8 +256,7 @@ class SmallRGBDNet(nn.Module):
 def novelty_temperature(novelty: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) factor ``max(1 - h, NOVELTY_FLOOR)``, h the normalised entropy of the
     softmax of the novelty branch's (B, S, H, W) logits."""
-    logp = F.log_softmax(novelty, dim=1)
-    h = -(logp.exp() * logp).sum(dim=1, keepdim=True) / math.log(novelty.shape[1])
+    h = entropy(novelty.movedim(1, -1)).unsqueeze(1) / math.log(novelty.shape[1])
     return (1.0 - h).clamp(min=NOVELTY_FLOOR)
 
 
