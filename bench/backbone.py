@@ -11,6 +11,9 @@ Accuracy: ``default_*`` on the 5 validation seeds of the training record
 (and per novel class) the AUROC of that entropy for novel against known pixels
 (fractions); ``test_no_branch_*`` and ``default_no_branch_ms_*`` are the shipped weights
 without their novelty branch (``backbone.novelty_branch`` false), when they have one.
+Speed: ``default_ms_*`` is predict() as the package runs it (batch norms folded, NHWC);
+``default_unfolded_ms_320x240`` the net exactly as trained, timed interleaved with
+``default_interleaved_ms_320x240`` (their ratio ``default_folding_speedup``).
 
     .venv/bin/python bench/backbone.py            # full: 5 + 5 held-out seeds x 30 frames
     .venv/bin/python bench/backbone.py --quick    # fewer runs / frames (smoke)
@@ -77,6 +80,34 @@ def default_speed(backbone: bb.Backbone, runs: int) -> dict:
     res["default_ms_320x240_1thread"] = median_ms(lambda: backbone.predict(rgb, depth), runs)
     torch.set_num_threads(threads)
     return res
+
+
+def folding_speed(backbone: bb.Backbone, runs: int) -> dict:
+    """predict() of the inference net (batch norms folded, NHWC; what load_backbone
+    gives) against the net exactly as trained (as read from the weight file), runs
+    interleaved so a machine that changes speed affects both alike."""
+    from neurncd_ros.core.backbone import small
+
+    trained = bb.Backbone(small.load_weights(str(bb.DEFAULT_WEIGHTS)), "default",
+                          backbone.channel_to_id, backbone.input_size, "cpu",
+                          small.prepare_inputs)
+    trained.net.novelty_branch = backbone.novelty_branch
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    depth = (0.5 + 4 * rng.random((240, 320))).astype(np.float32)
+    times: dict = {"folded": [], "unfolded": []}
+    for _ in range(3):
+        backbone.predict(rgb, depth)
+        trained.predict(rgb, depth)
+    for _ in range(runs):
+        for key, b in (("folded", backbone), ("unfolded", trained)):
+            t = time.perf_counter()
+            b.predict(rgb, depth)
+            times[key].append(time.perf_counter() - t)
+    folded, unfolded = (statistics.median(times[k]) * 1000 for k in ("folded", "unfolded"))
+    return {"default_interleaved_ms_320x240": folded,
+            "default_unfolded_ms_320x240": unfolded,
+            "default_folding_speedup": unfolded / folded}
 
 
 def esanet_speed(runs: int) -> dict:
@@ -199,6 +230,7 @@ def main() -> int:
     backbone = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads))
     res: dict = {}
     res.update(default_speed(backbone, runs))
+    res.update(folding_speed(backbone, runs))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).
@@ -216,7 +248,8 @@ def main() -> int:
         res.update(esanet_speed(3 if args.quick else 10))
     from neurncd_ros.core.backbone import small
     res["default_gflops_320x240"] = small.count_flops(backbone.net) / 1e9
-    res["default_parameters"] = small.count_parameters(backbone.net)
+    res["default_parameters"] = small.count_parameters(
+        small.load_weights(str(bb.DEFAULT_WEIGHTS)))  # as trained (the file's floats)
     res["default_weights_mb"] = bb.DEFAULT_WEIGHTS.stat().st_size / 1e6
     res["quick"] = bool(args.quick)
     res["threads"] = args.threads

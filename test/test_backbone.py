@@ -70,6 +70,51 @@ def test_loading_the_default_backbone_leaves_torchs_global_generator_alone():
     assert b.channels == len(classes.KNOWN_IDS)
 
 
+def test_inference_net_is_the_trained_function_with_batch_norms_folded(default_backbone,
+                                                                        held_out_frames):
+    """The backbone runs the shipped net with every batch norm folded into its
+    convolution and in NHWC layout (for speed); it computes the same logits as the net
+    rebuilt from the file as trained, on a real frame, and the argmax is identical."""
+    net = default_backbone.net
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    assert default_backbone.channels_last
+    trained = small.load_weights(str(bb.DEFAULT_WEIGHTS))
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in trained.modules())
+    fr = held_out_frames[0]
+    ours = default_backbone.predict(fr.rgb, fr.depth)
+    rgb = torch.from_numpy(fr.rgb).permute(2, 0, 1)[None].float()
+    with torch.inference_mode():
+        ref = trained.predict_raw(rgb, torch.from_numpy(fr.depth)[None, None])
+    ref = ref[0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(ours, ref, atol=2e-4 * float(np.abs(ref).max()))
+    assert (ours.argmax(-1) == ref.argmax(-1)).mean() > 0.9999
+
+
+def test_fold_batch_norm_keeps_the_function_of_any_layout():
+    """Folding is exact for any batch-norm statistics (not only the shipped ones) and
+    refuses a net in training mode, whose norms still learn."""
+    torch.manual_seed(0)
+    net = small.SmallRGBDNet(widths=(8, 8, 16, 16), novelty_branch=True)
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-1, 1)
+            m.running_var.uniform_(0.2, 3)
+            m.weight.data.uniform_(0.5, 2)
+            m.bias.data.uniform_(-1, 1)
+    with pytest.raises(ValueError, match="eval"):
+        small.fold_batch_norm(net)
+    net.eval()
+    x_rgb, x_depth = torch.randn(2, 3, 40, 56), torch.randn(2, 2, 40, 56)
+    with torch.inference_mode():
+        ref = net(x_rgb, x_depth)
+        folded = small.fold_batch_norm(net)
+        out = folded.to(memory_format=torch.channels_last)(
+            x_rgb.contiguous(memory_format=torch.channels_last),
+            x_depth.contiguous(memory_format=torch.channels_last))
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    torch.testing.assert_close(out, ref, atol=1e-4, rtol=1e-4)
+
+
 def test_predict_batch_matches_single(default_backbone):
     a = _rgbd(240, 320, 1)
     b = _rgbd(150, 200, 2)
@@ -176,6 +221,15 @@ def test_entropy_range_and_stability():
     assert h[0, 1] == pytest.approx(0.0, abs=1e-6)
     with pytest.raises(ValueError, match="NaN"):
         uncertainty.entropy(np.array([[np.nan, 1.0]], np.float32))
+
+
+def test_entropy_over_the_channel_axis_of_a_tensor():
+    """A network's (B, S, H, W) output: entropy over dim 1 equals moving channels last."""
+    x = torch.randn(2, 9, 5, 7) * 4
+    torch.testing.assert_close(uncertainty.entropy(x, dim=1),
+                               uncertainty.entropy(x.movedim(1, -1)))
+    with pytest.raises(ValueError, match="channels last"):
+        uncertainty.entropy(np.zeros((9, 4), np.float32), dim=0)
 
 
 # ----------------------------------------------------------------------------- training pieces

@@ -29,17 +29,21 @@ def softmax(logits: Any, axis: int = -1) -> Any:
     return e / e.sum(axis=axis, keepdims=True)
 
 
-def entropy(logits: Any) -> Any:
-    """Natural-log entropy of softmax(logits) over the last axis, clipped to [0, ln S].
+def entropy(logits: Any, dim: int = -1) -> Any:
+    """Natural-log entropy of softmax(logits) over the channel axis, clipped to [0, ln S].
 
-    numpy input: float32 result, ValueError on NaN/inf or a non-float array;
-    torch input: a differentiable tensor of the same dtype.
+    numpy input: channels last (``dim`` must be -1), float32 result, ValueError on
+    NaN/inf or a non-float array; torch input: a differentiable tensor of the same
+    dtype, the channels on ``dim`` (1 for a network's (B, S, H, W) output: no
+    transposed copy, half the time of moving them last).
     """
     if _is_torch(logits):
         import torch
-        log_p = torch.log_softmax(logits, dim=-1)
-        h = -(log_p.exp() * log_p).sum(dim=-1)
-        return h.clamp(0.0, math.log(logits.shape[-1]))
+        log_p = torch.log_softmax(logits, dim=dim)
+        h = -(log_p.exp() * log_p).sum(dim=dim)
+        return h.clamp(0.0, math.log(logits.shape[dim]))
+    if dim != -1:
+        raise ValueError("numpy logits are channels last: entropy(..., dim=-1)")
     x = np.asarray(logits)
     if x.ndim < 1 or x.shape[-1] < 1:
         raise ValueError(f"logits need a non-empty last (channel) axis, got shape {x.shape}")

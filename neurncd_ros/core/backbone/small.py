@@ -256,8 +256,43 @@ class SmallRGBDNet(nn.Module):
 def novelty_temperature(novelty: torch.Tensor) -> torch.Tensor:
     """(B, 1, H, W) factor ``max(1 - h, NOVELTY_FLOOR)``, h the normalised entropy of the
     softmax of the novelty branch's (B, S, H, W) logits."""
-    h = entropy(novelty.movedim(1, -1)).unsqueeze(1) / math.log(novelty.shape[1])
+    h = entropy(novelty, dim=1).unsqueeze(1) / math.log(novelty.shape[1])
     return (1.0 - h).clamp(min=NOVELTY_FLOOR)
+
+
+def fold_batch_norm(model: nn.Module) -> nn.Module:
+    """Fold every batch norm into the convolution right before it, in place, for inference.
+
+    In eval mode a batch norm is a fixed per-channel scale and shift, so it can be
+    merged into the preceding convolution's weights and bias: the same function
+    (outputs equal to float rounding) without a memory pass per norm, which on a CPU
+    costs about as much as a small convolution (bench/results/backbone.json,
+    ``default_unfolded_ms_320x240``). Pairs are a ``Conv2d`` followed by a
+    ``BatchNorm2d`` in a ``Sequential`` (:class:`ConvBNReLU`, the pyramid pooling
+    branches) and the two conv/norm pairs of :class:`NonBottleneck1D`; each folded
+    norm becomes an ``Identity``. Training needs the norms: only for a net in eval mode.
+    """
+    from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+    if model.training:
+        raise ValueError("fold_batch_norm is for inference: call model.eval() first")
+    for module in list(model.modules()):
+        if isinstance(module, nn.Sequential):
+            for i in range(len(module) - 1):
+                conv, bn = module[i], module[i + 1]
+                if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
+                    module[i], module[i + 1] = fuse_conv_bn_eval(conv, bn), nn.Identity()
+        elif isinstance(module, NonBottleneck1D):
+            for conv_name, bn_name in (("conv1x3_1", "bn1"), ("conv1x3_2", "bn2")):
+                bn = getattr(module, bn_name)
+                if isinstance(bn, nn.BatchNorm2d):
+                    setattr(module, conv_name,
+                            fuse_conv_bn_eval(getattr(module, conv_name), bn))
+                    setattr(module, bn_name, nn.Identity())
+    left = [n for n, m in model.named_modules() if isinstance(m, nn.BatchNorm2d)]
+    if left:
+        raise RuntimeError(f"batch norms without a convolution to fold into: {left}")
+    return model
 
 
 def count_parameters(model: nn.Module) -> int:
