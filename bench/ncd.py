@@ -213,8 +213,11 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     for i in range(len(sc["depth"])):
         intr = Intrinsics.from_matrix(sc["K"][i], w, h)
         logits = sc["logits"][i].astype(np.float32)
+        feats = None
         if source == "rendered":
             emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
+            if emb.shape[-1] > len(c2i):  # backbone.features: the features follow
+                emb, feats = emb[..., : len(c2i)], emb[..., len(c2i):]
         else:
             emb, ent = logits, entropy(logits)
         t = time.perf_counter()
@@ -222,7 +225,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
             lab = c2i[logits.argmax(-1)].astype(np.uint16)
         else:
             lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]),
-                            sc["rgb"][i])
+                            sc["rgb"][i], feats)
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
         # The known-class pixels alone (novel ones void): what is lost on known objects,
@@ -299,6 +302,9 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
         # The threshold tuned for the net without its branch (labeller docstring).
         rows["no_novelty_branch"] = {"backbone.novelty_branch": False,
                                      "discovery.entropy_threshold": 0.15}
+    if base.backbone.kind == "default" and not base.backbone.features:
+        # Direction 1: the backbone's penultimate features in the segment descriptor.
+        rows["features"] = {"backbone.features": True}
     other = {"logits": "probabilities", "probabilities": "logits"}[base.mapper_node.fusion]
     if base.mapper_node.fallback == "keyframes":
         rows[f"fusion_{other}"] = {"mapper_node.fusion": other}

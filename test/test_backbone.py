@@ -115,6 +115,11 @@ def test_fold_batch_norm_keeps_the_function_of_any_layout():
     torch.testing.assert_close(out, ref, atol=1e-4, rtol=1e-4)
 
 
+def test_features_need_the_default_net():
+    with pytest.raises(ValueError, match="kind=default only"):
+        bb.load_backbone(bb.BackboneConfig(kind="esanet", checkpoint="x.pth", features=True))
+
+
 def test_predict_batch_matches_single(default_backbone):
     a = _rgbd(240, 320, 1)
     b = _rgbd(150, 200, 2)

@@ -372,9 +372,9 @@ def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges
     seen = []
     orig = Discoverer.process_segments
 
-    def spy(self, segments, embedding, entropy, colour=None):
+    def spy(self, segments, embedding, entropy, colour=None, features=None):
         seen.append(colour)
-        return orig(self, segments, embedding, entropy, colour)
+        return orig(self, segments, embedding, entropy, colour, features)
 
     monkeypatch.setattr(Discoverer, "process_segments", spy)
     f = frames[10]
@@ -390,6 +390,60 @@ def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges
         st.set_spec(backbone.spec)
         st.label(view)
         assert (seen[-1] is not None) == wanted
+
+
+def test_backbone_features_ride_with_the_keyframes_into_each_segment_descriptor(
+        frames, tmp_path, monkeypatch):
+    """backbone.features (issue 11, direction 1): the embedding carries the net's 20
+    penultimate feature channels after its 9 logits; the field learns the logits alone,
+    the keyframe fusion averages the features with them, a saved map restores them, and
+    discovery pools them into each segment's descriptor (modulation.feature_weight)."""
+    from neurncd_ros.core.discovery.labeller import Discoverer
+    from neurncd_ros.core.field.mapper import Mapper
+
+    c = config.load(None, {"mapper.fast.rays_per_iteration": 256, "backbone.features": True,
+                           "backbone.num_threads": 1, "run.training_rate_hz": 10.0})
+    b = load_backbone(c.backbone)
+    assert b.spec.feature_channels == 20 and b.spec.channels == 29
+    f = frames[10]
+    emb = b.embed(f.rgb, f.depth)
+    assert emb.shape == f.depth.shape + (29,)
+    np.testing.assert_allclose(emb[..., :9], b.predict(f.rgb, f.depth), atol=1e-4)
+    assert np.abs(emb[..., 9:]).max() > 0 and np.isfinite(emb).all()
+    widths = []
+    orig = Discoverer.process_segments
+
+    def spy(self, segments, embedding, entropy, colour=None, features=None):
+        out = orig(self, segments, embedding, entropy, colour, features)
+        widths.append((None if features is None else features.shape[-1],
+                       self._mem.desc.shape[1]))
+        return out
+
+    monkeypatch.setattr(Discoverer, "process_segments", spy)
+    engine = OfflineEngine(c, b)
+    outs = list(engine.run(frames[:30], progress=False))
+    assert outs and all(o.view.embedding.shape[-1] == 29 for o in outs)
+    assert engine.mapper.channels == 9 and engine.mapper.feature_channels == 20
+    assert engine.mapper.iterations > 0
+    # The descriptor: the default's parts plus the 20-wide feature part.
+    plain = list(OfflineEngine(config.load(None, {"mapper.fast.rays_per_iteration": 256}),
+                               load_backbone(BackboneConfig())).run(frames[:4],
+                                                                    progress=False))
+    assert plain and widths[0][0] == 20 and widths[-1][0] is None
+    assert widths[0][1] == widths[-1][1] + 20
+    path = tmp_path / "map.pt"
+    assert engine.mapping.save(path)
+    back = MapperStage(c.mapper_node, mapper_factory(c), online=False)
+    back.load(path, Mapper.load)
+    assert back.spec == b.spec and back.mapper.feature_channels == 20
+    # A frame without features in a stream that had them is a clear error.
+    d = Discoverer(c.discovery, mcl_cfg=c.mcl, seg_cfg=c.segmentation, mod_cfg=c.modulation)
+    seg = np.zeros((8, 8), np.int64)
+    seg[:, 4:] = 1
+    e = np.zeros((8, 8, 9), np.float32)
+    d.process_segments(seg, e, np.zeros((8, 8), np.float32), None, np.ones((8, 8, 20)))
+    with pytest.raises(ValueError, match="features or none"):
+        d.process_segments(seg, e, np.zeros((8, 8), np.float32))
 
 
 def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):

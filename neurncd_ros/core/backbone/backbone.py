@@ -73,6 +73,12 @@ class BackboneConfig:
                                  "they have one (an outlier-exposed head whose entropy flattens "
                                  "the logits where it sees no known class; argmax unchanged); "
                                  "false = the known-class logits alone")
+    features: bool = param(False, "kind=default: append the net's penultimate feature map "
+                           "(the last decoder stage's 20 channels) to the embedding after "
+                           "the logits (issue 11, direction 1: the mapper's keyframe fusion "
+                           "averages them, discovery pools them per segment, "
+                           "modulation.feature_weight); the embedding topic grows 29/9 times, "
+                           "so pair it with embedding_node.output_scale 0.5")
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
     num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
                              "(0 = leave torch's setting); 1 because the "
@@ -110,7 +116,7 @@ class Backbone:
 
     def __init__(self, net: torch.nn.Module, kind: str, channel_to_id: np.ndarray,
                  input_size: tuple[int, int], device: str, preprocess,
-                 channels_last: bool = False) -> None:
+                 channels_last: bool = False, feature_channels: int = 0) -> None:
         self.net = net.eval()
         self.kind = kind
         self.channel_to_id = np.asarray(channel_to_id, dtype=np.uint16)
@@ -119,6 +125,9 @@ class Backbone:
         self.device = torch.device(device)
         self._preprocess = preprocess
         self.channels_last = channels_last  # NHWC inputs for a net converted to NHWC
+        # > 0: embed() appends this many channels of the net's penultimate feature map
+        # (the net's ``forward_with_features``) after the logits.
+        self.feature_channels = int(feature_channels)
 
     def inputs(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
                ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -151,22 +160,25 @@ class Backbone:
     @property
     def spec(self) -> EmbeddingSpec:
         """What the channels of :meth:`embed`'s output mean (travels with the embedding)."""
-        return EmbeddingSpec(tuple(int(i) for i in self.channel_to_id), 0, self.kind)
+        return EmbeddingSpec(tuple(int(i) for i in self.channel_to_id), self.feature_channels,
+                             self.kind)
 
     def embed(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """One frame -> (H, W, spec.channels) float32 semantic embedding (the logits)."""
-        return self.predict(rgb, depth)
+        """One frame -> (H, W, spec.channels) float32 semantic embedding: the logits, then
+        the penultimate features when ``backbone.features`` is on."""
+        return self.predict_batch([rgb], [depth], features=self.feature_channels > 0)[0]
 
     def predict(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """One frame -> (H, W, S) float32 logits at the frame's own size."""
         return self.predict_batch([rgb], [depth])[0]
 
-    def predict_batch(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
-                      ) -> list[np.ndarray]:
-        """Several frames (any sizes) -> list of (H_i, W_i, S) float32 logits.
+    def predict_batch(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray],
+                      features: bool = False) -> list[np.ndarray]:
+        """Several frames (any sizes) -> list of (H_i, W_i, S) float32 logits
+        (``features``: (H_i, W_i, S + feature_channels), the features after them).
 
         Frames are resized to the model input size, run as one batch, and the
-        logits resized back to each frame's size.
+        outputs resized back to each frame's size.
         """
         if len(rgbs) != len(depths):
             raise ValueError(f"got {len(rgbs)} rgb images but {len(depths)} depth images")
@@ -175,7 +187,12 @@ class Backbone:
         sizes = [np.asarray(d).shape for d in depths]
         with torch.inference_mode():
             x_rgb, x_depth = self.inputs(rgbs, depths)
-            logits = self.net(x_rgb, x_depth)
+            if features:
+                logits, feats = self.net.forward_with_features(x_rgb, x_depth)
+                logits = torch.cat([logits, F.interpolate(
+                    feats, size=logits.shape[-2:], mode="bilinear", align_corners=False)], 1)
+            else:
+                logits = self.net(x_rgb, x_depth)
             if isinstance(logits, (tuple, list)):  # some nets return side outputs
                 logits = logits[0]
             out = []
@@ -185,9 +202,10 @@ class Backbone:
                     li = F.interpolate(li, size=(hh, ww), mode="bilinear", align_corners=False)
                 out.append(np.ascontiguousarray(
                     li[0].permute(1, 2, 0).float().cpu().numpy(), dtype=np.float32))
-        if self.channels != out[0].shape[-1]:
+        expected = self.channels + (self.feature_channels if features else 0)
+        if expected != out[0].shape[-1]:
             raise RuntimeError(f"network returned {out[0].shape[-1]} channels, "
-                               f"expected {self.channels}")
+                               f"expected {expected}")
         return out
 
 
@@ -242,7 +260,8 @@ def _load_default(cfg: BackboneConfig) -> Backbone:
     # (bench/results/backbone.json, default_unfolded_ms_320x240).
     net = small.fold_batch_norm(net).to(memory_format=torch.channels_last)
     return Backbone(net, "default", classes.CHANNEL_TO_ID.copy(), _input_size(cfg), cfg.device,
-                    small.prepare_inputs, channels_last=True)
+                    small.prepare_inputs, channels_last=True,
+                    feature_channels=net.widths[0] if cfg.features else 0)
 
 
 def esanet_channel_to_id(dataset: str) -> np.ndarray:
@@ -293,6 +312,9 @@ def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:
     cfg = cfg or BackboneConfig()
     if cfg.kind not in NATIVE_SIZE:
         raise ValueError(f"backbone kind must be 'default' or 'esanet', got {cfg.kind!r}")
+    if cfg.features and cfg.kind != "default":
+        raise ValueError("backbone.features (penultimate features in the embedding) is "
+                         "implemented for kind=default only")
     if cfg.device == "cuda" and not torch.cuda.is_available():
         raise ValueError("backbone device 'cuda' requested but torch sees no CUDA device")
     _input_size(cfg)  # fail early on a bad size

@@ -240,6 +240,19 @@ class SmallRGBDNet(nn.Module):
             x, skip = self._decoder_input(x_rgb, x_depth)
         return self._novelty(x, skip, x_rgb.shape[-2:])
 
+    def forward_with_features(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
+                              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`forward`, plus the penultimate feature map: the last decoder stage's
+        output (B, widths[0], H/2, W/2), what the known-class classifier reads."""
+        size = x_rgb.shape[-2:]
+        x, skip = self._decoder_input(x_rgb, x_depth)
+        feats = self.decoder[-1](x, skip)
+        logits = F.interpolate(self.classifier(feats), size=size, mode="bilinear",
+                               align_corners=False)
+        if self.novelty_branch:
+            logits = logits * novelty_temperature(self._novelty(x, skip, size))
+        return logits, feats
+
     def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor) -> torch.Tensor:
         """Normalised inputs (see :func:`prepare_inputs`) -> (B, S, H, W) logits (with the
         novelty branch: the known-class logits times its temperature factor)."""

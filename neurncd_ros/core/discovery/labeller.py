@@ -69,7 +69,10 @@ embedding is not finite.
 
 :meth:`Discoverer.classes` reports, for every id present in the last labelled
 frame plus every currently live novel id, its name, kind and pixel count in the
-last labelled frame. Not thread-safe (the node serialises calls).
+last labelled frame. Not thread-safe (the node serialises calls). The module
+stays one module (over 500 lines): the segment memory, the re-clustering, the
+naming and the stable ids all read and update the one state of a
+:class:`Discoverer`, and splitting them would pass that state around.
 """
 
 from __future__ import annotations
@@ -212,11 +215,13 @@ class Discoverer:
     # ------------------------------------------------------------ main entry
 
     def process(self, depth: np.ndarray, intrinsics: Intrinsics, embedding: np.ndarray,
-                entropy: np.ndarray, stamp_ns: int = 0, colour: np.ndarray | None = None
-                ) -> np.ndarray:
+                entropy: np.ndarray, stamp_ns: int = 0, colour: np.ndarray | None = None,
+                features: np.ndarray | None = None) -> np.ndarray:
         """Label one frame: (H, W) uint16 with known ids 1..13 and novel ids >= 100.
 
-        ``colour`` (H, W, 3) uint8 RGB, optional, adds geoseg's colour edges."""
+        ``colour`` (H, W, 3) uint8 RGB, optional, adds geoseg's colour edges;
+        ``features`` (H, W, F), optional, the backbone's features for the descriptor
+        (``modulation.feature_weight``)."""
         embedding = np.asarray(embedding)
         if embedding.ndim != 3 or embedding.shape[2] != self.S:
             raise ValueError(f"embedding must be (H, W, {self.S}) to match channel_to_id, got "
@@ -229,7 +234,7 @@ class Discoverer:
         # and doors leave the wall.
         segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
         segments = self._uncertain_regions(segments, entropy)
-        labels = self.process_segments(segments, embedding, entropy, colour)
+        labels = self.process_segments(segments, embedding, entropy, colour, features)
         self.last_stamp_ns = int(stamp_ns)
         return labels
 
@@ -264,14 +269,21 @@ class Discoverer:
         return np.where(comp > 0, new_id[comp], segments).astype(segments.dtype)
 
     def process_segments(self, segments: np.ndarray, embedding: np.ndarray,
-                         entropy: np.ndarray, colour: np.ndarray | None = None) -> np.ndarray:
+                         entropy: np.ndarray, colour: np.ndarray | None = None,
+                         features: np.ndarray | None = None) -> np.ndarray:
         """As :meth:`process` but with a given segmentation (ids 0..n-1, -1 = none).
 
-        ``colour`` feeds the descriptor's colour part (``modulation.colour_weight``)."""
+        ``colour`` feeds the descriptor's colour part (``modulation.colour_weight``),
+        ``features`` its feature part (``modulation.feature_weight``)."""
         stats, mean_logit = segment_stats(
             segments, embedding, entropy, self.mod_cfg.entropy_interior,
-            colour if self.mod_cfg.colour_weight > 0 else None)
+            colour if self.mod_cfg.colour_weight > 0 else None,
+            features if self.mod_cfg.feature_weight > 0 else None)
         desc = descriptors_from_stats(stats, mean_logit, self.mod_cfg)
+        if self._mem is not None and desc.shape[1] != self._mem.desc.shape[1]:
+            raise ValueError(f"segment descriptors of {desc.shape[1]} values, the memory's "
+                             f"have {self._mem.desc.shape[1]}: every frame must come with "
+                             "features or none")
         present = stats.pixels > 0
         n = int(stats.pixels.size)
         new = _Memory(uid=np.arange(self._next_uid, self._next_uid + n, dtype=np.int64),

@@ -22,6 +22,13 @@ intends, and what is implemented here, is a *pooled* descriptor per segment:
   usually differs from the wall's. It is a per-frame input, the same whether
   the embedding is rendered by the field or taken from the backbone.
 
+- feature part (``feature_weight`` > 0 and an embedding with feature channels,
+  ``backbone.features``): the segment's mean penultimate feature of the backbone,
+  L2-normalised and scaled by ``feature_weight``. The paper's "semantic
+  embedding" is the network's feature, not only its class scores; segments the
+  logits call "wall" may still differ there (issue 11, direction 1; measured in
+  bench/results/ncd.json, row ``features``).
+
 ``mode`` selects the paper's ablations: "both", "embedding" only, "entropy"
 only (the entropy-only descriptor is [mean, std], so under cosine affinity it
 mostly separates by the std/mean ratio: a deliberately weak baseline).
@@ -69,6 +76,11 @@ class ModulationConfig:
                                  lo=0.0, hi=100.0)
     colour_std: bool = param(False, "with colour_weight > 0, also append the per-channel "
                              "standard deviation of the segment's Lab colour")
+    feature_weight: float = param(0.6, "scale of the segment's L2-normalised mean backbone "
+                                  "feature appended to the descriptor, when the embedding "
+                                  "carries features (backbone.features); 0 = not used (0.6 "
+                                  "tuned, bench/results/ncd_sweep_feature_weight_"
+                                  "features-true.json)", lo=0.0, hi=100.0)
 
 
 @dataclasses.dataclass
@@ -82,6 +94,7 @@ class SegmentStats:
     mean_prob: np.ndarray       # (n, S) float32 mean softmax
     mean_lab: np.ndarray | None = None  # (n, 3) float32 mean CIELAB / 100 (None: no colour)
     std_lab: np.ndarray | None = None   # (n, 3) float32 its standard deviation / 100
+    mean_feature: np.ndarray | None = None  # (n, F) float32 mean feature (None: none)
 
 
 def _check(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray
@@ -129,15 +142,16 @@ def lab_colour(colour: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
-                  entropy_interior: int = 0, colour: np.ndarray | None = None
-                  ) -> tuple[SegmentStats, np.ndarray]:
+                  entropy_interior: int = 0, colour: np.ndarray | None = None,
+                  features: np.ndarray | None = None) -> tuple[SegmentStats, np.ndarray]:
     """Per-segment stats plus the mean centred logits (n, S); ids 0..n-1, -1 = none.
 
     Logits are centred per pixel (their channel mean subtracted) because softmax
     ignores a common offset, so only the centred part carries information.
     ``entropy_interior`` > 0 takes the entropy statistics over each segment's
     interior (:func:`interior`), where it has one. ``colour`` (H, W, 3) uint8 RGB,
-    optional, adds each segment's mean and std Lab colour (:func:`lab_colour`).
+    optional, adds each segment's mean and std Lab colour (:func:`lab_colour`);
+    ``features`` (H, W, F), optional, each segment's mean feature.
     """
     segments, embedding, entropy = _check(segments, embedding, entropy)
     n = int(segments.max()) + 1 if segments.size else 0
@@ -171,6 +185,15 @@ def segment_stats(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarr
     std_ent = np.sqrt(np.maximum(ent_sq / np.maximum(ent_n, 1) - mean_ent ** 2, 0.0))
     stats = SegmentStats(counts, mean_ent.astype(np.float32), std_ent.astype(np.float32), hist,
                          (mean_prob * inv[:, None]).astype(np.float32))
+    if features is not None:
+        feats = np.asarray(features, np.float32)
+        if feats.ndim != 3 or feats.shape[:2] != segments.shape:
+            raise ValueError(f"features must be (H, W, F) with H, W = {segments.shape}, got "
+                             f"{feats.shape}")
+        f = np.nan_to_num(feats.reshape(-1, feats.shape[2])[sel])
+        stats.mean_feature = (np.stack([np.bincount(ids, weights=f[:, c], minlength=n)
+                                        for c in range(f.shape[1])], axis=1)
+                              * inv[:, None]).astype(np.float32)
     if colour is not None:
         lab = lab_colour(colour, segments.shape).reshape(-1, 3)[sel].astype(np.float64)
         s1 = np.stack([np.bincount(ids, weights=lab[:, c], minlength=n) for c in range(3)], 1)
@@ -210,15 +233,21 @@ def descriptors_from_stats(stats: SegmentStats, mean_logit: np.ndarray,
             sd = stats.std_lab if stats.std_lab is not None else np.zeros((n, 3), np.float32)
             col.append(sd * cfg.colour_weight)
         parts.append(np.concatenate(col, axis=1))
+    if cfg.feature_weight > 0 and stats.mean_feature is not None:
+        f = stats.mean_feature
+        parts.append(f / np.maximum(np.linalg.norm(f, axis=1, keepdims=True), 1e-12)
+                     * cfg.feature_weight)
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
 def segment_descriptors(segments: np.ndarray, embedding: np.ndarray, entropy: np.ndarray,
                         cfg: ModulationConfig = ModulationConfig(),
-                        colour: np.ndarray | None = None) -> np.ndarray:
+                        colour: np.ndarray | None = None,
+                        features: np.ndarray | None = None) -> np.ndarray:
     """(n, D) float32 descriptor per segment id 0..n-1 (empty ids get a zero embedding part)."""
     stats, mean_logit = segment_stats(segments, embedding, entropy, cfg.entropy_interior,
-                                      colour if cfg.colour_weight > 0 else None)
+                                      colour if cfg.colour_weight > 0 else None,
+                                      features if cfg.feature_weight > 0 else None)
     return descriptors_from_stats(stats, mean_logit, cfg)
 
 

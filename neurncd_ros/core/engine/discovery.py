@@ -166,8 +166,12 @@ class DiscoveryStage:
             rgb = view.rgb
             if rgb.shape[:2] != (h, w):
                 rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+        features = None
+        if spec.feature_channels and self.cfg.modulation.feature_weight > 0:
+            features = resize_to(np.ascontiguousarray(emb[..., spec.logit_channels:],
+                                                      np.float32), h, w)
         labels = self.discoverer.process(depth, view.intrinsics, logits, ent, view.stamp_ns,
-                                         rgb)
+                                         rgb, features)
         self.health.count("labelled")
         self.health.set_state("running")
         return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)

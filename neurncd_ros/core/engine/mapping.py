@@ -165,7 +165,7 @@ class MapperStage:
 
     STREAMS = ("embedding", "color", "depth", "pose")
 
-    def __init__(self, cfg: MapperNodeConfig, make_mapper: Callable[[int], Any],
+    def __init__(self, cfg: MapperNodeConfig, make_mapper: Callable[..., Any],
                  health: Health | None = None, online: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
@@ -190,7 +190,9 @@ class MapperStage:
     # ------------------------------------------------------------ the field
     def _ensure_mapper(self, spec: EmbeddingSpec):
         if self.mapper is None:
-            self.mapper = self._make_mapper(spec.channels)
+            # The field learns the logits; features ride along with the keyframes.
+            self.mapper = (self._make_mapper(spec.logit_channels, spec.feature_channels)
+                           if spec.feature_channels else self._make_mapper(spec.channels))
             self.spec = spec
             if self.online:
                 self.mapper.start()
@@ -219,9 +221,9 @@ class MapperStage:
             raise ValueError(f"{spec_file} is missing: {path} was not saved by the mapper")
         self.spec = EmbeddingSpec.from_json(spec_file.read_text())
         self.mapper = load_mapper(str(path))
-        if self.mapper.channels != self.spec.channels:
-            raise ValueError(f"{path} has {self.mapper.channels} channels, its spec "
-                             f"{self.spec.channels}")
+        got = self.mapper.channels + getattr(self.mapper, "feature_channels", 0)
+        if got != self.spec.channels:
+            raise ValueError(f"{path} has {got} channels, its spec {self.spec.channels}")
         if self.online:
             self.mapper.start()
 
@@ -441,7 +443,8 @@ class MapperStage:
             # checks ``cancel`` between chunks (a node stops promptly even mid-render).
             field = mapper.render_rays(origins, dirs, z, cancel=cancel)["embedding"]
             wt = weight[sel][:, None]
-            emb[sel] = wt * field + (1.0 - wt) * backbone[sel]
+            S = field.shape[1]  # the field renders the logits; features stay the fusion's
+            emb[sel, :S] = wt * field + (1.0 - wt) * backbone[sel, :S]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])
         if mean_h is not None:  # only with a disagreement_weight (keyframe_fill)

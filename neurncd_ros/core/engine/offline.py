@@ -74,13 +74,14 @@ def mapper_factory(cfg) -> Callable[[int], Any]:
     """channels -> a new Mapper configured by ``cfg`` (the whole configuration)."""
     from ..field.mapper import Mapper
 
-    return lambda channels: Mapper.from_config(cfg, channels)
+    return lambda channels, feature_channels=0: Mapper.from_config(cfg, channels,
+                                                                   feature_channels)
 
 
 class OfflineEngine:
     """Feed frames in stamp order; get the labelled frames out."""
 
-    def __init__(self, cfg, backbone=None, make_mapper: Callable[[int], Any] | None = None
+    def __init__(self, cfg, backbone=None, make_mapper: Callable[..., Any] | None = None
                  ) -> None:
         from ..backbone.backbone import load_backbone, threshold_warning
 

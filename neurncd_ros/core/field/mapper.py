@@ -113,18 +113,25 @@ class MapperConfig:
 class Mapper:
     """Online Embedding-NeRF: keyframe buffer, background training, rendering.
 
-    ``Mapper(cfg, channels, keyframes, backend_cfg)``: the ``mapper`` section,
-    the embedding channels S, the ``keyframes`` section and the backend's own
-    section (defaults where None). :meth:`from_config` takes them from a whole
+    ``Mapper(cfg, channels, keyframes, backend_cfg, feature_channels)``: the
+    ``mapper`` section, the embedding channels S the field learns and renders, the
+    ``keyframes`` section, the backend's own section (defaults where None), and
+    how many feature channels follow the S logits in a keyframe's embedding
+    (``backbone.features``: kept with the keyframe for the mapper stage's keyframe
+    fusion, not learnt by the field). :meth:`from_config` takes them from a whole
     configuration.
     """
 
     def __init__(self, cfg: MapperConfig | None = None, channels: int = 9,
-                 keyframes: KeyframeConfig | None = None, backend_cfg: Any = None) -> None:
+                 keyframes: KeyframeConfig | None = None, backend_cfg: Any = None,
+                 feature_channels: int = 0) -> None:
         self.cfg = cfg or MapperConfig()
         if channels < 1:
             raise ValueError(f"channels must be >= 1, got {channels}")
+        if feature_channels < 0:
+            raise ValueError(f"feature_channels must be >= 0, got {feature_channels}")
         self.channels = int(channels)
+        self.feature_channels = int(feature_channels)
         self._backend = backends.get(self.cfg.backend)
         self.backend_cfg = backend_cfg if backend_cfg is not None else self._backend.config()
         if not isinstance(self.backend_cfg, self._backend.config):
@@ -144,11 +151,12 @@ class Mapper:
         self._init_model()
 
     @classmethod
-    def from_config(cls, cfg: Any, channels: int) -> "Mapper":
+    def from_config(cls, cfg: Any, channels: int, feature_channels: int = 0) -> "Mapper":
         """A mapper from a whole configuration: anything with ``.mapper``, ``.keyframes``
         and ``.section("mapper.<backend>")`` (as ``neurncd_ros.config.Config``)."""
         return cls(cfg.mapper, channels, keyframes=cfg.keyframes,
-                   backend_cfg=cfg.section(f"mapper.{cfg.mapper.backend}"))
+                   backend_cfg=cfg.section(f"mapper.{cfg.mapper.backend}"),
+                   feature_channels=feature_channels)
 
     # ------------------------------------------------------------ model state
     def _init_model(self) -> None:
@@ -209,15 +217,18 @@ class Mapper:
     def add_keyframe(self, frame: Frame, embedding: np.ndarray, force: bool = False) -> bool:
         """Offer a frame; True if admitted as a keyframe.
 
-        ``embedding`` (h, w, S) float logits may be coarser than the frame (same
-        aspect): it is kept at its resolution and each training ray reads the
-        embedding pixel covering its frame pixel (see ``keyframes``).
+        ``embedding`` (h, w, S [+ feature_channels]) float logits [and features] may be
+        coarser than the frame (same aspect): it is kept at its resolution and each
+        training ray reads the embedding pixel covering its frame pixel (see
+        ``keyframes``); the field learns the S logits.
         """
         frame.validate()
         emb = check_embedding(frame, embedding)
-        if emb.shape[-1] != self.channels:
+        if emb.shape[-1] != self.channels + self.feature_channels:
             raise ValueError(f"embedding has {emb.shape[-1]} channels, the mapper was built "
-                             f"for {self.channels}")
+                             f"for {self.channels}"
+                             + (f" + {self.feature_channels} features"
+                                if self.feature_channels else ""))
         if not force and not self.buffer.should_admit(frame.pose, frame.stamp_ns):
             return False
         # Bounds first: once the keyframe is in the buffer its rays may be drawn.
@@ -237,7 +248,8 @@ class Mapper:
         return RayBatch(torch.from_numpy(r["origins"]).float(),
                         torch.from_numpy(r["dirs"]).float(), torch.from_numpy(r["rgb"]),
                         torch.from_numpy(depth.astype(np.float32)),
-                        torch.from_numpy(r["embedding"]))
+                        torch.from_numpy(np.ascontiguousarray(
+                            r["embedding"][:, : self.channels])))
 
     def _near_far(self, origins: torch.Tensor, dirs: torch.Tensor):
         lo = torch.tensor(self._lo, dtype=torch.float32)
@@ -469,6 +481,7 @@ class Mapper:
         with self._lock:
             state = {
                 "version": SAVE_VERSION, "channels": self.channels,
+                "feature_channels": self.feature_channels,
                 "config": {"mapper": to_dict(self.cfg), "keyframes": to_dict(self.keyframe_cfg),
                            "backend": to_dict(self.backend_cfg)},
                 "iterations": self._iterations,
@@ -508,7 +521,8 @@ class Mapper:
         prefixes = {"mapper": "mapper.", "keyframes": "keyframes.",
                     "backend": f"mapper.{backend}."}
         built = {n: build(c, sections[n], prefix=prefixes[n]) for n, c in classes.items()}
-        m = cls(built["mapper"], int(state["channels"]), built["keyframes"], built["backend"])
+        m = cls(built["mapper"], int(state["channels"]), built["keyframes"], built["backend"],
+                int(state.get("feature_channels", 0)))
         with m._lock:
             if state["bounds"] is not None:
                 b = state["bounds"].numpy()
