@@ -8,8 +8,8 @@ rendered at their pose and depth with the coverage blend, the ``run.*``
 training schedule), i.e. what the live graph publishes. The views (rendered
 embedding + entropy) and the backbone's own logits of the labelled frames are
 cached (npz under /tmp, keyed by seed, frame count, the engine's configuration,
-backbone weights and generator source), so the discovery stage can be scored
-and tuned many times.
+backbone weights, the source of the backbone, engine and field, and the
+generator's source), so the discovery stage can be scored and tuned many times.
 
 Scenes: tuning on ``seeds.TUNE`` (rooms the backbone never saw), report on
 ``seeds.TEST`` (held out from everything). Each scene is scored on its own
@@ -104,7 +104,22 @@ def _key(cfg: config.Config, seed: int, frames: int) -> str:
     h.update(json.dumps(to_dict(cfg.backbone), sort_keys=True).encode())
     h.update(Path(cfg.backbone.checkpoint or DEFAULT_WEIGHTS).read_bytes())
     h.update(generator_hash().encode())
+    h.update(_render_source_hash().encode())
     return h.hexdigest()[:12]
+
+
+def _render_source_hash() -> str:
+    """The source of everything that makes a view (backbone, engine, field, camera,
+    entropy): a change there renders the scenes again instead of reusing stale views."""
+    core = REPO / "neurncd_ros" / "core"
+    files = sorted([*(core / "backbone").glob("*.py"), *(core / "engine").rglob("*.py"),
+                    *(core / "field").rglob("*.py"), core / "camera.py",
+                    core / "uncertainty.py", core / "frame.py"])
+    h = hashlib.sha1()
+    for f in files:
+        h.update(f.relative_to(REPO).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
 
 
 ROWS = ("rgb", "depth", "K", "embedding", "entropy", "logits", "semantic", "instance",

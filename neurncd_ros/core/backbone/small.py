@@ -222,15 +222,14 @@ class SmallRGBDNet(nn.Module):
         return F.interpolate(self.novelty_classifier(self.novelty_decoder(x, skip)), size=size,
                              mode="bilinear", align_corners=False)
 
-    def heads(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
-              ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(known-class logits, novelty-branch logits or None), both (B, S, H, W) at the
-        input size; the branch reads the same features as the last decoder stage."""
-        size = x_rgb.shape[-2:]
-        x, skip = self._decoder_input(x_rgb, x_depth)
-        logits = F.interpolate(self.classifier(self.decoder[-1](x, skip)), size=size,
-                               mode="bilinear", align_corners=False)
-        return logits, (self._novelty(x, skip, size) if self.novelty_branch else None)
+    def _temperature(self, x: torch.Tensor, skip: torch.Tensor, size) -> torch.Tensor:
+        """(B, 1, H, W) novelty temperature at the input size for inference: computed from
+        the branch's logits at the decoder's half resolution, then the one-channel factor
+        upsampled (bilinear, so it stays in [NOVELTY_FLOOR, 1]). Upsampling S logits and
+        taking their entropy at full size instead cost about 7 of the net's 50 ms on
+        this CPU and differ only along edges (bench/results/backbone.json)."""
+        t = novelty_temperature(self.novelty_classifier(self.novelty_decoder(x, skip)))
+        return F.interpolate(t, size=size, mode="bilinear", align_corners=False)
 
     def novelty_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         """Un-normalised batch -> (B, S, H, W) novelty-branch logits, the rest of the
@@ -250,16 +249,13 @@ class SmallRGBDNet(nn.Module):
         logits = F.interpolate(self.classifier(feats), size=size, mode="bilinear",
                                align_corners=False)
         if self.novelty_branch:
-            logits = logits * novelty_temperature(self._novelty(x, skip, size))
+            logits = logits * self._temperature(x, skip, size)
         return logits, feats
 
     def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor) -> torch.Tensor:
         """Normalised inputs (see :func:`prepare_inputs`) -> (B, S, H, W) logits (with the
         novelty branch: the known-class logits times its temperature factor)."""
-        logits, novelty = self.heads(x_rgb, x_depth)
-        if novelty is None:
-            return logits
-        return logits * novelty_temperature(novelty)
+        return self.forward_with_features(x_rgb, x_depth)[0]
 
     def predict_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
         """Un-normalised batch (rgb 0..255, depth metres) -> (B, S, H, W) logits."""
