@@ -21,8 +21,11 @@ entropy h sets a per-pixel temperature: the output logits are the known-class
 head's logits times ``max(1 - h, NOVELTY_FLOOR)``. Scaling by a positive factor
 keeps every pixel's argmax, so the known classes are labelled exactly as
 without the branch, while the softmax flattens (its entropy rises) where the
-branch sees something it was taught is no known class. Why not outlier exposure
-of the whole net: it costs known-class accuracy (bench/results/backbone_oe_wholenet.json).
+branch sees something it was taught is no known class. At inference h is taken
+at the decoder's half resolution and the factor upsampled (:meth:`SmallRGBDNet.
+_temperature`, cheaper); training scores the branch's full-size logits. Why not
+outlier exposure of the whole net: it costs known-class accuracy
+(bench/results/backbone_oe_wholenet.json).
 """
 
 from __future__ import annotations
