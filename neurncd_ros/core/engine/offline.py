@@ -70,8 +70,9 @@ class Output:
         return self.embedding.spec.ids()[np.argmax(logits, axis=2)]
 
 
-def mapper_factory(cfg) -> Callable[[int], Any]:
-    """channels -> a new Mapper configured by ``cfg`` (the whole configuration)."""
+def mapper_factory(cfg) -> Callable[..., Any]:
+    """(channels S the field learns, feature_channels kept with the keyframes = 0) -> a new
+    Mapper configured by ``cfg`` (the whole configuration)."""
     from ..field.mapper import Mapper
 
     return lambda channels, feature_channels=0: Mapper.from_config(cfg, channels,
