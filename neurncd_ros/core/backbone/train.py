@@ -90,8 +90,8 @@ def entropy_by_kind(model: torch.nn.Module, data: dict[str, np.ndarray], batch: 
             rgb = torch.from_numpy(data["rgb"][i: i + batch]).permute(0, 3, 1, 2).float()
             depth = torch.from_numpy(np.nan_to_num(data["depth"][i: i + batch], nan=0.0,
                                                    posinf=0.0, neginf=0.0))[:, None]
-            logits = model.predict_raw(rgb, depth).movedim(1, -1)
-            ent = (entropy(logits) / math.log(logits.shape[-1])).numpy()
+            logits = model.predict_raw(rgb, depth)
+            ent = (entropy(logits, dim=1) / math.log(logits.shape[1])).numpy()
             sem = data["semantic"][i: i + batch]
             for kind, sel in (("known", semantic_to_target(sem) < classes.NUM_KNOWN),
                               ("novel", np.isin(sem, novel_ids))):

@@ -165,7 +165,7 @@ class MapperStage:
 
     STREAMS = ("embedding", "color", "depth", "pose")
 
-    def __init__(self, cfg: MapperNodeConfig, make_mapper: Callable[..., Any],
+    def __init__(self, cfg: MapperNodeConfig, make_mapper: Callable[[int, int], Any],
                  health: Health | None = None, online: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
@@ -191,8 +191,7 @@ class MapperStage:
     def _ensure_mapper(self, spec: EmbeddingSpec):
         if self.mapper is None:
             # The field learns the logits; features ride along with the keyframes.
-            self.mapper = (self._make_mapper(spec.logit_channels, spec.feature_channels)
-                           if spec.feature_channels else self._make_mapper(spec.channels))
+            self.mapper = self._make_mapper(spec.logit_channels, spec.feature_channels)
             self.spec = spec
             if self.online:
                 self.mapper.start()
@@ -221,7 +220,7 @@ class MapperStage:
             raise ValueError(f"{spec_file} is missing: {path} was not saved by the mapper")
         self.spec = EmbeddingSpec.from_json(spec_file.read_text())
         self.mapper = load_mapper(str(path))
-        got = self.mapper.channels + getattr(self.mapper, "feature_channels", 0)
+        got = self.mapper.channels + self.mapper.feature_channels
         if got != self.spec.channels:
             raise ValueError(f"{path} has {got} channels, its spec {self.spec.channels}")
         if self.online:

@@ -70,19 +70,19 @@ class Output:
         return self.embedding.spec.ids()[np.argmax(logits, axis=2)]
 
 
-def mapper_factory(cfg) -> Callable[..., Any]:
-    """(channels S the field learns, feature_channels kept with the keyframes = 0) -> a new
+def mapper_factory(cfg) -> Callable[[int, int], Any]:
+    """(channels S the field learns, feature_channels kept with the keyframes) -> a new
     Mapper configured by ``cfg`` (the whole configuration)."""
     from ..field.mapper import Mapper
 
-    return lambda channels, feature_channels=0: Mapper.from_config(cfg, channels,
-                                                                   feature_channels)
+    return lambda channels, feature_channels: Mapper.from_config(cfg, channels,
+                                                                 feature_channels)
 
 
 class OfflineEngine:
     """Feed frames in stamp order; get the labelled frames out."""
 
-    def __init__(self, cfg, backbone=None, make_mapper: Callable[..., Any] | None = None
+    def __init__(self, cfg, backbone=None, make_mapper: Callable[[int, int], Any] | None = None
                  ) -> None:
         from ..backbone.backbone import load_backbone, threshold_warning
 
