@@ -431,8 +431,9 @@ def _slug(pairs: list[str]) -> str:
 
 
 def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: int) -> None:
-    """``--sweep key=v1,v2,...``: the discovery scores of each value on the tuning scenes,
-    a table on stdout and bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
+    """``--sweep key=v1,v2,...``: the scores of each value on the tuning scenes (the
+    scenes rendered again for each value of an engine parameter), a table on stdout and
+    bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
     if "=" not in args.sweep or "." not in args.sweep.split("=", 1)[0]:
         raise SystemExit(f"--sweep {args.sweep!r}: expected SECTION.KEY=V1,V2,...")
     key, raw = args.sweep.split("=", 1)
@@ -445,10 +446,14 @@ def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: in
                          f"{key.split('.')[0]!r}") from None
     except config.ConfigError as err:
         raise SystemExit(f"--sweep {args.sweep!r}: {err}") from None
-    scenes = prepare(base, seeds.TUNE[:n_tune], frames, args.workers)
     rows = []
     for v in tqdm(values, desc=f"sweep {key}"):
-        r = discover(scenes, with_overrides(base, {key: v}), workers=args.workers)
+        cfg = with_overrides(base, {key: v})
+        # Each value's own views: an engine parameter (mapper_node, keyframes, mapper,
+        # backbone, run) changes the cache key and renders the scenes again, a discovery
+        # parameter reuses them.
+        scenes = prepare(cfg, seeds.TUNE[:n_tune], frames, args.workers)
+        r = discover(scenes, cfg, workers=args.workers)
         rows.append({"value": v, **{k: r[k] for k in (
             "miou_all", "miou_known", "miou_novel", "std_miou_all", "novel_id_stability",
             "novel_id_stability_found", "novel_classes_matched")}})
