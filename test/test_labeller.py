@@ -389,6 +389,32 @@ def test_uncertain_pixels_without_segment_join_the_nearest_novel_label():
     assert (off[22:32, 12:16] < NOVEL_ID_START).all()
 
 
+def test_uncertain_pixels_inside_a_known_segment_join_the_adjacent_novel_label():
+    """With novel_fill_known (default) the fill also reaches uncertain pixels that a
+    known segment holds (a picture's frame cut into the wall segment): next to the novel
+    object they take its id; uncertain pixels far from it, and confident ones next to
+    it, stay wall; off, the wall segment keeps them all."""
+    layout = [("wall", (0, 20, 0, 80)), ("A", (22, 32, 0, 12)), ("A", (22, 32, 14, 26)),
+              ("floor", (45, 60, 0, 80))]
+    seg, emb, ent, kinds = _frame(layout, 0)
+    rng = np.random.default_rng(7)
+    band, far = (slice(17, 20), slice(0, 12)), (slice(2, 5), slice(60, 66))
+    for r, c in (band, far):
+        n = (r.stop - r.start) * (c.stop - c.start)
+        emb[r, c] = _logits("A", rng, n).reshape(r.stop - r.start, c.stop - c.start, S)
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    assert ent[band].mean() > 0.6 * np.log(S)  # uncertain, inside the wall segment
+    lab = _discoverer(novel_fill_px=80).process_segments(seg, emb, ent)
+    a, _ = _label_of(lab, kinds, "A")
+    assert a >= NOVEL_ID_START
+    assert (lab[band] == a).mean() > 0.9
+    assert (lab[far] == CLASS_ID["wall"]).all()
+    assert (lab[17:20, 30:50] == CLASS_ID["wall"]).all()  # confident, near A's second piece
+    off = _discoverer(novel_fill_px=80, novel_fill_known=False).process_segments(seg, emb, ent)
+    assert (off[band] == CLASS_ID["wall"]).all()
+
+
 def test_uncertain_region_without_depth_becomes_a_novel_segment():
     """A large region the segmentation leaves out (here: no depth, as on glass) whose
     embedding is unsure gets a novel id of its own; a small one, or the feature off,
