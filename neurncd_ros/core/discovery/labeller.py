@@ -500,7 +500,7 @@ class Discoverer:
             return out
         novel = out >= NOVEL_ID_START
         hot = np.nan_to_num(entropy, nan=0.0) > self.cfg.entropy_threshold * np.log(self.S)
-        hot &= (lab <= 0) | ((lab < NOVEL_ID_START) if self.cfg.novel_fill_known else False)
+        hot &= (lab < NOVEL_ID_START) if self.cfg.novel_fill_known else (lab <= 0)
         if not novel.any() or not hot.any():
             return out
         dist, near = cv2.distanceTransformWithLabels((~novel).astype(np.uint8), cv2.DIST_L2,
