@@ -28,6 +28,7 @@ bench/results/field.json and bench/results/field.png.
     .venv/bin/python bench/field.py --quick         # smoke: fast 30 s, reference 40 s,
                                                     # 4 eval frames at 40x30 rays
     .venv/bin/python bench/field.py --embedding gt  # noisy one-hot GT logits, no backbone
+    .venv/bin/python bench/field.py --skip-reference  # fast backend only: field_fast.json
 """
 
 from __future__ import annotations
@@ -237,6 +238,10 @@ def main() -> None:
     ap.add_argument("--reference-threads", type=int, default=os.cpu_count() or 1,
                     help="torch threads of the reference backend (its fastest setting)")
     ap.add_argument("--skip-reference", action="store_true")
+    ap.add_argument("--name", default=None,
+                    help="results file stem (default: field, or field_fast with "
+                    "--skip-reference, so a run without the reference never replaces the "
+                    "full record)")
     args = ap.parse_args()
     fast_cps, ref_cps = FAST_CHECKPOINTS, REFERENCE_CHECKPOINTS
     if args.quick:
@@ -316,13 +321,14 @@ def main() -> None:
     res["commit"] = commit()
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "field.json").write_text(json.dumps(res, indent=2))
-    plot(curves, RESULTS / "field.png", base)
+    name = args.name or ("field_fast" if args.skip_reference else "field")
+    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=2))
+    plot(curves, RESULTS / f"{name}.png", base)
     print()
     for k, v in res.items():
         if not isinstance(v, list):
             print(f"  {k:34s} {v:.4g}" if isinstance(v, float) else f"  {k:34s} {v}")
-    print(f"wrote {RESULTS / 'field.json'} and field.png")
+    print(f"wrote {RESULTS / name}.json and {name}.png")
 
 
 if __name__ == "__main__":
