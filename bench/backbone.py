@@ -91,14 +91,15 @@ TARGET_MS = 40.0
 """The frame budget of issue 11: one 320x240 frame through predict() on 2 cores."""
 
 
-def interleaved_speed(backbone: bb.Backbone, runs: int) -> dict:
+def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None, runs: int) -> dict:
     """predict() of the package's net (batch norms folded, NHWC, with its novelty
-    branch), of the same net without the branch, and of the net exactly as trained (as
-    read from the weight file), one call of each per round, ``runs`` rounds.
+    branch), of the same net without the branch (``plain``; None when the weights have
+    no branch), and of the net exactly as trained (as read from the weight file), one
+    call of each per round, ``runs`` rounds.
 
     Why interleaved: this machine's speed drifts by up to 2x over minutes (other
     guests of the host); timing the variants one after the other made the branch look
-    like 20 ms when it costs about 5. Interleaving exposes every variant to the same
+    like 20 ms when it costs about 9. Interleaving exposes every variant to the same
     drift, so their ratios hold; the medians and the share of frames within the
     budget say how the package's net does over the whole run."""
     from neurncd_ros.core.backbone import small
@@ -107,10 +108,8 @@ def interleaved_speed(backbone: bb.Backbone, runs: int) -> dict:
                           backbone.channel_to_id, backbone.input_size, "cpu",
                           small.prepare_inputs)
     trained.net.novelty_branch = backbone.novelty_branch
-    plain = bb.load_backbone(bb.BackboneConfig(num_threads=torch.get_num_threads(),
-                                               novelty_branch=False))
     variants = {"default": backbone, "no_branch": plain, "unfolded": trained}
-    if not backbone.novelty_branch:
+    if plain is None:
         del variants["no_branch"]
     rng = np.random.default_rng(1)
     rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
@@ -259,17 +258,18 @@ def main() -> int:
     runs = 20 if args.quick else 50
     backbone = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads))
     res: dict = {}
+    # The same weights without their novelty branch (backbone.novelty_branch false), when
+    # they have one: the same argmax, the known-class head's own entropy, less time.
+    plain = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
+                                                novelty_branch=False))
+             if backbone.novelty_branch else None)
     res.update(default_speed(backbone, runs))
-    res.update(interleaved_speed(backbone, 60 if args.quick else 300))
+    res.update(interleaved_speed(backbone, plain, 60 if args.quick else 300))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).
     res.update(accuracy(backbone, 5 if args.quick else 1, seeds.TEST[:5], "test")[0])
-    if backbone.novelty_branch:
-        # The same weights without their novelty branch (backbone.novelty_branch false):
-        # the same argmax, the known-class head's own entropy.
-        plain = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
-                                                   novelty_branch=False))
+    if plain is not None:
         res.update(accuracy(plain, 5 if args.quick else 1, seeds.TEST[:5],
                             "test_no_branch")[0])
     if not args.no_esanet:

@@ -321,14 +321,14 @@ def main() -> None:
     res["commit"] = commit()
 
     RESULTS.mkdir(parents=True, exist_ok=True)
-    name = args.name or ("field_fast" if args.skip_reference else "field")
-    (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=2))
-    plot(curves, RESULTS / f"{name}.png", base)
+    stem = args.name or ("field_fast" if args.skip_reference else "field")
+    (RESULTS / f"{stem}.json").write_text(json.dumps(res, indent=2))
+    plot(curves, RESULTS / f"{stem}.png", base)
     print()
     for k, v in res.items():
         if not isinstance(v, list):
             print(f"  {k:34s} {v:.4g}" if isinstance(v, float) else f"  {k:34s} {v}")
-    print(f"wrote {RESULTS / name}.json and {name}.png")
+    print(f"wrote {RESULTS / stem}.json and {stem}.png")
 
 
 if __name__ == "__main__":

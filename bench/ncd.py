@@ -446,13 +446,16 @@ def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: in
                          f"{key.split('.')[0]!r}") from None
     except config.ConfigError as err:
         raise SystemExit(f"--sweep {args.sweep!r}: {err}") from None
-    rows = []
+    rows, scenes, views = [], [], None
     for v in tqdm(values, desc=f"sweep {key}"):
         cfg = with_overrides(base, {key: v})
         # Each value's own views: an engine parameter (mapper_node, keyframes, mapper,
-        # backbone, run) changes the cache key and renders the scenes again, a discovery
-        # parameter reuses them.
-        scenes = prepare(cfg, seeds.TUNE[:n_tune], frames, args.workers)
+        # backbone, run) changes the cache key and renders the scenes again; a discovery
+        # parameter keeps the key, and the views already loaded are scored again.
+        key_v = [_key(cfg, s, frames) for s in seeds.TUNE[:n_tune]]
+        if key_v != views:
+            scenes = prepare(cfg, seeds.TUNE[:n_tune], frames, args.workers)
+            views = key_v
         r = discover(scenes, cfg, workers=args.workers)
         rows.append({"value": v, **{k: r[k] for k in (
             "miou_all", "miou_known", "miou_novel", "std_miou_all", "novel_id_stability",
