@@ -41,6 +41,8 @@ the report gives the mean over scenes. Rows of the report (percent):
   with the entropy threshold tuned for it, 0.15) (these rows render the scenes again);
 - ``uncertain_regions``: large high-entropy regions without a segment become segments
   (``discovery.uncertain_region_px`` 1200, off by default);
+- ``no_label_fusion``: every frame labelled on its own, without the voxel map of
+  labels that keeps a surface's novel id (``label_fusion.enabled`` off);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -123,7 +125,7 @@ def _render_source_hash() -> str:
 
 
 ROWS = ("rgb", "depth", "K", "embedding", "entropy", "logits", "semantic", "instance",
-        "stamp", "keyframe", "field_share", "iterations")
+        "stamp", "keyframe", "field_share", "iterations", "pose")
 
 
 def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
@@ -148,6 +150,7 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
         rows["rgb"].append(f.rgb)
         rows["depth"].append(f.depth)
         rows["K"].append(f.intrinsics.K)
+        rows["pose"].append(f.pose)
         rows["embedding"].append(resize_to(v.embedding, h, w).astype(np.float16))
         rows["entropy"].append(resize_to(v.entropy, h, w))
         rows["logits"].append(resize_to(o.embedding.logits, h, w).astype(np.float16))
@@ -223,7 +226,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     c2i = classes.CHANNEL_TO_ID
     times = []
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
-                   mod_cfg=cfg.modulation)
+                   mod_cfg=cfg.modulation, fusion_cfg=cfg.label_fusion)
     h, w = sc["depth"].shape[1:]
     for i in range(len(sc["depth"])):
         intr = Intrinsics.from_matrix(sc["K"][i], w, h)
@@ -240,7 +243,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
             lab = c2i[logits.argmax(-1)].astype(np.uint16)
         else:
             lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]),
-                            sc["rgb"][i], feats)
+                            sc["rgb"][i], feats, sc["pose"][i])
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
         # The known-class pixels alone (novel ones void): what is lost on known objects,
@@ -572,6 +575,8 @@ def main() -> None:
             with_overrides(base, {"modulation.colour_weight": 0.0,
                                   "discovery.mode_split": False}), "logits"),
         "backbone": (base, "argmax"),
+        **({"no_label_fusion": (with_overrides(base, {"label_fusion.enabled": False}),
+                                "rendered")} if base.label_fusion.enabled else {}),
         **({} if base.discovery.uncertain_region_px else {"uncertain_regions": (
             with_overrides(base, {"discovery.uncertain_region_px": 1200}), "rendered")}),
     }

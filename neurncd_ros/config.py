@@ -71,6 +71,7 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "modulation": ("neurncd_ros.core.discovery.modulation", "ModulationConfig"),
     "mcl": ("neurncd_ros.core.discovery.mcl", "MCLConfig"),
     "discovery": ("neurncd_ros.core.discovery.labeller", "DiscoveryConfig"),
+    "label_fusion": ("neurncd_ros.core.discovery.fusion", "LabelFusionConfig"),
     "embedding_node": ("neurncd_ros.core.engine.embedding", "EmbeddingNodeConfig"),
     "mapper_node": ("neurncd_ros.core.engine.mapping", "MapperNodeConfig"),
     "discovery_node": ("neurncd_ros.core.engine.discovery", "DiscoveryNodeConfig"),

@@ -296,7 +296,7 @@ def test_discovery_waits_for_the_spec_and_labels_at_depth_size(cfg, backbone, fr
     emb = resize_to(backbone.embed(f.rgb, f.depth), 36, 48)
     ent = uncertainty.entropy(emb)
     for stream, value in (("embedding", emb), ("info", f.intrinsics), ("entropy", ent),
-                          ("color", f.rgb)):
+                          ("color", f.rgb), ("pose", f.pose)):
         assert st.offer(stream, f.stamp_ns, value) is False
     assert st.offer("depth", f.stamp_ns, f.depth) is True
     assert st.take() is None, "no spec yet: the view waits"
@@ -312,6 +312,10 @@ def test_discovery_waits_for_the_spec_and_labels_at_depth_size(cfg, backbone, fr
     bad = ViewInput(f.stamp_ns, f.depth[:, :10], f.intrinsics, emb, ent, f.rgb)
     with pytest.raises(ValueError, match="camera info"):
         st.label(bad)
+    bad = ViewInput(f.stamp_ns, f.depth, f.intrinsics, emb, ent, f.rgb,
+                    pose=np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="view pose"):
+        st.label(bad)
 
 
 def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):
@@ -321,7 +325,7 @@ def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):
     f = frames[0]
     emb = np.zeros((72, 96, 9), np.float32)
     for stream, value in (("embedding", emb), ("info", f.intrinsics), ("color", f.rgb),
-                          ("entropy", emb[..., 0]), ("depth", f.depth)):
+                          ("entropy", emb[..., 0]), ("depth", f.depth), ("pose", f.pose)):
         st.offer(stream, f.stamp_ns, value)
     clock.t = 10.0
     assert st.take() is None and st.pending == 0

@@ -35,6 +35,9 @@ class Topics:
                             "(32FC1 m), published with it so discovery always has it")
     view_color: str = param("/neurncd/view/color", "the colour image of the rendered view, "
                             "rgb8")
+    view_pose: str = param("/neurncd/view/pose", "camera-to-world pose of the rendered view "
+                           "(geometry_msgs/PoseStamped, stamp of its frame), for discovery's "
+                           "label fusion")
     view_camera_info: str = param("/neurncd/view/camera_info", "intrinsics of the rendered "
                                   "view's depth and colour")
     rendered_spec: str = param("/neurncd/rendered_embedding/spec", "what the rendered "

@@ -2,7 +2,7 @@
 
 A thin adapter over the engine's :class:`DiscoveryStage`: the pieces of each
 view the mapper publishes (rendered embedding, entropy, the view's depth,
-colour and camera info, all with the frame's stamp) are converted and offered
+colour, camera info and pose, all with the frame's stamp) are converted and offered
 to the stage, which pairs them; a worker labels complete views in order
 (segmentation, feature modulation, Markov clustering, stable novel ids) and
 publishes the label image, its colour rendering and the class table
@@ -29,6 +29,7 @@ DESCRIPTION = ("Segments each rendered view's depth into convex segments, cluste
 
 def make_node():
     from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseStamped
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
@@ -48,6 +49,7 @@ def make_node():
                 "depth": (t.view_depth, Image, msgconv.depth_from_image),
                 "color": (t.view_color, Image, msgconv.rgb_from_image),
                 "info": (t.view_camera_info, CameraInfo, msgconv.camera_info_to_intrinsics),
+                "pose": (t.view_pose, PoseStamped, msgconv.pose_to_matrix),
                 "entropy": (t.entropy, Image, msgconv.image_to_array),
                 "embedding": (t.rendered_embedding, Image, self._embedding),
             }

@@ -100,6 +100,8 @@ def make_node():
                         for name, topic in views}
             self.pub_info = self.create_publisher(CameraInfo, self.topics.view_camera_info,
                                                   view_qos(depth))
+            self.pub_view_pose = self.create_publisher(PoseStamped, self.topics.view_pose,
+                                                       view_qos(depth))
             self.pub_spec = self.create_publisher(String, self.topics.rendered_spec,
                                                   latched_qos())
             self.pub_keyframes = self.create_publisher(PoseStamped, self.topics.keyframes,
@@ -241,6 +243,7 @@ def make_node():
             self.pub["depth"].publish(image_msg(f.depth, "32FC1", stamp, fid, t.view_depth))
             self.pub["color"].publish(image_msg(f.rgb, "rgb8", stamp, fid, t.view_color))
             self.pub_info.publish(camera_info_msg(f.intrinsics, stamp, fid))
+            self.pub_view_pose.publish(pose_msg(f.pose, stamp, t.world_frame))
             self.pub["entropy"].publish(image_msg(view.entropy, "32FC1", stamp, fid,
                                                   t.entropy))
             self.pub["embedding"].publish(image_msg(view.embedding,

@@ -1,4 +1,4 @@
-"""Discovery stage: a view (depth, colour, rendered embedding, entropy) in, labels out.
+"""Discovery stage: a view (depth, colour, pose, rendered embedding, entropy) in, labels out.
 
 Online the pieces of a view arrive as messages with one stamp, published
 together by the mapper, so they pair at once; complete views wait in a
@@ -19,7 +19,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics
+from ..camera import Intrinsics, check_pose
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
@@ -47,7 +47,8 @@ class DiscoveryNodeConfig:
 
 @dataclasses.dataclass
 class ViewInput:
-    """A view as discovery needs it (no pose): what arrives over ROS."""
+    """A view as discovery needs it: what arrives over ROS. The pose (camera-to-world)
+    feeds the label fusion (``fusion``); None labels the view on its own."""
 
     stamp_ns: int
     depth: np.ndarray
@@ -57,18 +58,19 @@ class ViewInput:
     rgb: np.ndarray | None
     keyframe: bool = False
     arrived: float = 0.0
+    pose: np.ndarray | None = None
 
     @classmethod
     def of(cls, view: ViewRecord) -> "ViewInput":
         f = view.frame
         return cls(f.stamp_ns, f.depth, f.intrinsics, view.embedding, view.entropy, f.rgb,
-                   view.keyframe)
+                   view.keyframe, pose=f.pose)
 
 
 class DiscoveryStage:
     """Segments, modulates, clusters and names; one Discoverer per embedding spec."""
 
-    STREAMS = ("depth", "embedding", "entropy", "color", "info")
+    STREAMS = ("depth", "embedding", "entropy", "color", "info", "pose")
 
     def __init__(self, cfg, node_cfg: DiscoveryNodeConfig = DiscoveryNodeConfig(),
                  health: Health | None = None, clock: Callable[[], float] = time.monotonic
@@ -99,7 +101,8 @@ class DiscoveryStage:
             from ..discovery.labeller import Discoverer
             c = self.cfg
             self.discoverer = Discoverer(c.discovery, spec.ids(), mcl_cfg=c.mcl,
-                                         seg_cfg=c.segmentation, mod_cfg=c.modulation)
+                                         seg_cfg=c.segmentation, mod_cfg=c.modulation,
+                                         fusion_cfg=c.label_fusion)
             self.spec = spec
 
     # ------------------------------------------------------------ online input
@@ -110,7 +113,7 @@ class DiscoveryStage:
             for stamp, g in groups:
                 self.health.count("views_received")
                 item = ViewInput(stamp, g["depth"], g["info"], g["embedding"], g["entropy"],
-                                 g["color"], arrived=self._clock())
+                                 g["color"], arrived=self._clock(), pose=g["pose"])
                 self._queue.append(item)
                 if len(self._queue) > self.node_cfg.queue_size:
                     old = self._queue.popleft()
@@ -170,8 +173,11 @@ class DiscoveryStage:
         if spec.feature_channels and self.cfg.modulation.feature_weight > 0:
             features = resize_to(np.ascontiguousarray(emb[..., spec.logit_channels:],
                                                       np.float32), h, w)
+        pose = None
+        if view.pose is not None:
+            pose = check_pose(view.pose, "view pose")
         labels = self.discoverer.process(depth, view.intrinsics, logits, ent, view.stamp_ns,
-                                         rgb, features)
+                                         rgb, features, pose)
         self.health.count("labelled")
         self.health.set_state("running")
         return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)

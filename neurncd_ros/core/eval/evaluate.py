@@ -105,7 +105,7 @@ def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
     """The discovery stage (a fresh Discoverer) over the cached frames."""
     c2i = np.asarray(keep["_c2i"])
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
-                   mod_cfg=mod_cfg)
+                   mod_cfg=mod_cfg, fusion_cfg=cfg.label_fusion)
     out = []
     for i in range(len(keep["stamp"])):
         if embeddings is not None:
@@ -116,7 +116,7 @@ def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
             ent = keep["entropy"][i]
         rgb = keep["rgb"][i] if cfg.segmentation.colour_edges else None
         out.append(d.process(keep["depth"][i], keep["intr"][i], emb, ent,
-                             keep["stamp"][i], rgb))
+                             keep["stamp"][i], rgb, pose=keep["pose"][i]))
     return out
 
 

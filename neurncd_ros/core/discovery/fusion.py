@@ -1,0 +1,196 @@
+"""Label fusion: a voxel map of the labels given so far, so a surface keeps its label.
+
+Why: discovery labels each frame from its own segments. A flat picture or a
+window whose segment merges with the wall segment in one frame (the colour edge
+was too weak there) is labelled wall in that frame and novel in the next, and
+one novel object split by Markov clustering can flip between two ids; the
+frame-by-frame labels of one surface then disagree although the camera sees the
+same surface. With the camera pose, every labelled pixel is a vote for its
+label at a world point: :class:`LabelFusion` keeps, per voxel, an exponentially
+decayed distribution of the labels it received (each observation of a voxel
+adds one unit of mass spread over the labels of its pixels in that frame, and
+the older mass is scaled by ``decay`` first), and a pixel is then labelled by its
+voxel's distribution. A label the map has seen for long outweighs one frame's
+change; a lasting change wins after a few frames (``decay`` sets how many).
+
+Novel ids that discovery retires (merged into another id, or no longer live)
+lose their votes: :meth:`LabelFusion.update` takes the live novel ids, so the
+map never brings back an id discovery no longer publishes.
+
+Pure numpy; the map is a sorted array of packed voxel keys with a row of votes
+per key, grown as new surface is seen and bounded by ``max_voxels`` (the voxels
+least recently observed are dropped first).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ..camera import Intrinsics, backproject
+from ..classes import NOVEL_ID_START
+from ..params import param
+
+_BITS = 21  # per axis: 2**21 voxels of 5 cm is 100 km
+_OFFSET = 1 << (_BITS - 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class LabelFusionConfig:
+    """The voxel map of labels that keeps a surface's label across frames (needs poses)."""
+
+    enabled: bool = param(True, "label each pixel by the decayed label votes of its voxel "
+                          "over the frames seen so far (needs the view's pose; off, or no "
+                          "pose, labels each frame on its own)")
+    voxel_size: float = param(0.03, "edge of a fusion voxel", lo=0.005, hi=1.0, unit="m")
+    decay: float = param(0.9, "each new observation of a voxel scales its older votes by "
+                         "this (0 = no memory)", lo=0.0, hi=0.999)
+    novel_only: bool = param(True, "the map changes a pixel's label only where the frame's "
+                             "label or the map's is novel (known-to-known changes are left "
+                             "to the frame: the map's voxels blur the known classes' "
+                             "boundaries)")
+    max_voxels: int = param(500_000, "voxels kept (about 450 m2 of surface at 3 cm; "
+                            "beyond, the least recently observed are dropped)", lo=1000,
+                            hi=10**8)
+
+
+class LabelFusion:
+    """Voxel map of decayed label votes; :meth:`update` fuses one labelled frame."""
+
+    def __init__(self, cfg: LabelFusionConfig = LabelFusionConfig()) -> None:
+        self.cfg = cfg
+        self.reset()
+
+    def reset(self) -> None:
+        self._keys = np.zeros(0, np.int64)     # sorted packed voxel keys
+        self._row = np.zeros(0, np.int64)      # storage row of each sorted key
+        self._votes = np.zeros((0, 0), np.float32)  # storage: (capacity, label columns)
+        self._seen = np.zeros(0, np.int64)     # storage: frame of the last observation
+        self._n = 0                            # storage rows in use
+        self._columns: dict[int, int] = {}     # label id -> column
+        self._frame = 0
+
+    def __len__(self) -> int:
+        return int(self._keys.size)
+
+    # ------------------------------------------------------------ helpers
+    def _pack(self, points: np.ndarray) -> np.ndarray:
+        idx = np.floor(points / self.cfg.voxel_size).astype(np.int64) + _OFFSET
+        idx = np.clip(idx, 0, (1 << _BITS) - 1)
+        return (idx[:, 0] << (2 * _BITS)) | (idx[:, 1] << _BITS) | idx[:, 2]
+
+    def _column_of(self, ids: np.ndarray) -> np.ndarray:
+        for i in ids.tolist():
+            if i not in self._columns:
+                self._columns[i] = len(self._columns)
+        n = len(self._columns)
+        if self._votes.shape[1] < n:
+            grown = np.zeros((self._votes.shape[0], n), np.float32)
+            grown[:, : self._votes.shape[1]] = self._votes
+            self._votes = grown
+        return np.array([self._columns[i] for i in ids.tolist()], np.int64)
+
+    def _rows_of(self, keys: np.ndarray) -> np.ndarray:
+        """Storage rows of these (unique, sorted) keys; new keys get new rows (storage
+        grows by doubling, the sorted index by one merge per frame)."""
+        pos = np.searchsorted(self._keys, keys)
+        found = np.zeros(keys.size, bool)
+        if self._keys.size:
+            found = self._keys[np.minimum(pos, self._keys.size - 1)] == keys
+        new = keys[~found]
+        if new.size:
+            need = self._n + new.size
+            if need > self._seen.size:
+                cap = max(need, 2 * self._seen.size, 1024)
+                votes = np.zeros((cap, self._votes.shape[1]), np.float32)
+                votes[: self._n] = self._votes[: self._n]
+                seen = np.zeros(cap, np.int64)
+                seen[: self._n] = self._seen[: self._n]
+                self._votes, self._seen = votes, seen
+            rows = np.arange(self._n, need, dtype=np.int64)
+            self._votes[rows] = 0.0
+            self._seen[rows] = self._frame
+            self._n = need
+            at = pos[~found]
+            self._keys = np.insert(self._keys, at, new)
+            self._row = np.insert(self._row, at, rows)
+            pos = np.searchsorted(self._keys, keys)
+        return self._row[pos]
+
+    def _retire(self, live_novel: set[int] | None) -> None:
+        """Forget the votes of novel ids discovery no longer publishes."""
+        if live_novel is None:
+            return
+        dead = {i for i in self._columns if i >= NOVEL_ID_START and i not in live_novel}
+        if dead:
+            keep = sorted((c, i) for i, c in self._columns.items() if i not in dead)
+            self._votes = np.ascontiguousarray(self._votes[:, [c for c, _ in keep]])
+            self._columns = {i: j for j, (_, i) in enumerate(keep)}
+
+    def _bound(self) -> None:
+        """Beyond ``max_voxels`` (by an eighth, so this runs rarely), keep the most
+        recently observed ``max_voxels``."""
+        if self._keys.size <= self.cfg.max_voxels * 9 // 8:
+            return
+        seen = self._seen[self._row]
+        keep_sorted = np.zeros(self._keys.size, bool)
+        keep_sorted[np.argsort(-seen, kind="stable")[: self.cfg.max_voxels]] = True
+        old_rows = self._row[keep_sorted]
+        self._keys = self._keys[keep_sorted]
+        self._votes = self._votes[old_rows].copy()
+        self._seen = self._seen[old_rows].copy()
+        self._n = int(old_rows.size)
+        self._row = np.arange(self._n, dtype=np.int64)
+
+    # ------------------------------------------------------------ main entry
+    def update(self, labels: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
+               pose: np.ndarray, live_novel: set[int] | None = None) -> np.ndarray:
+        """Add one frame's labels (H, W uint16; 0 = no label, no vote) seen from ``pose``
+        (camera-to-world) and return the fused labels: every pixel with valid depth
+        takes its voxel's strongest label; pixels without depth keep theirs.
+        ``live_novel``: the novel ids discovery still publishes (others lose their votes)."""
+        labels = np.asarray(labels)
+        if labels.shape != np.shape(depth):
+            raise ValueError(f"labels are {labels.shape} but depth is {np.shape(depth)}")
+        self._frame += 1
+        self._retire(live_novel)
+        points, mask = backproject(depth, intrinsics, pose)
+        out = labels.astype(np.uint16, copy=True)
+        if not points.size:
+            return out
+        lab = labels[mask].astype(np.int64)
+        keys = self._pack(points)
+        ukeys, inv = np.unique(keys, return_inverse=True)
+        rows = self._rows_of(ukeys)
+        voting = lab > 0
+        if voting.any():
+            ids, lab_idx = np.unique(lab[voting], return_inverse=True)
+            cols = self._column_of(ids)
+            v = inv[voting]
+            # One unit of mass per observed voxel, spread over its pixels' labels.
+            mass = np.bincount(v * ids.size + lab_idx, minlength=ukeys.size * ids.size
+                               ).reshape(ukeys.size, ids.size).astype(np.float32)
+            total = mass.sum(1, keepdims=True)
+            obs = total[:, 0] > 0
+            r = rows[obs]
+            self._votes[r] *= self.cfg.decay
+            self._votes[np.ix_(r, cols)] += mass[obs] / total[obs]
+            self._seen[r] = self._frame
+        if self._votes.shape[1]:
+            vox = self._votes[rows]
+            best = vox.argmax(1)
+            has = vox[np.arange(rows.size), best] > 0
+            ids_of_col = np.zeros(self._votes.shape[1], np.int64)
+            for i, c in self._columns.items():
+                ids_of_col[c] = i
+            fused = np.where(has, ids_of_col[best], 0)[inv]
+            keep = fused > 0
+            if self.cfg.novel_only:
+                cur = out[mask]
+                keep &= (fused >= NOVEL_ID_START) | (cur >= NOVEL_ID_START)
+            vals = out[mask]
+            vals[keep] = fused[keep]
+            out[mask] = vals
+        self._bound()
+        return out

@@ -1,0 +1,166 @@
+"""Label fusion: the voxel map keeps a surface's novel id across frames and poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from neurncd_ros.core.camera import Intrinsics, look_at
+from neurncd_ros.core.classes import CHANNEL_TO_ID, CLASS_ID, NOVEL_ID_START
+from neurncd_ros.core.discovery.fusion import LabelFusionConfig, LabelFusion
+
+H, W = 120, 160  # 1.25 cm per pixel on the plane, finer than a voxel
+INTR = Intrinsics.from_hfov(W, H, 90.0)
+WALL, CHAIR, TABLE = CLASS_ID["wall"], CLASS_ID["chair"], CLASS_ID["table"]
+NOVEL = NOVEL_ID_START + 2
+
+
+def _wall_pose(x: float) -> np.ndarray:
+    """A camera at (x, 0, 0) looking along +y at the plane y = 1 (world z up)."""
+    return look_at(np.array([x, 0.0, 0.0]), np.array([x, 1.0, 0.0]))
+
+
+def _plane_depth(pose: np.ndarray) -> np.ndarray:
+    """Depth of the plane y = 1 seen from ``pose`` (z-depth along the optical axis)."""
+    v, u = np.mgrid[0:H, 0:W]
+    d = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones((H, W))], -1)
+    dw = d @ pose[:3, :3].T
+    return ((1.0 - pose[1, 3]) / dw[..., 1]).astype(np.float32)
+
+
+def _world_x(pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World x of every pixel (the plane's horizontal coordinate)."""
+    v, u = np.mgrid[0:H, 0:W]
+    cam = np.stack([(u - INTR.cx) / INTR.fx * depth, (v - INTR.cy) / INTR.fy * depth, depth], -1)
+    return (cam @ pose[:3, :3].T + pose[:3, 3])[..., 0]
+
+
+def _labels_with_picture(pose, depth, lo=-0.3, hi=0.3):
+    """Wall everywhere, a novel "picture" where the plane's world x is in [lo, hi]."""
+    x = _world_x(pose, depth)
+    return np.where((x > lo) & (x < hi), NOVEL, WALL).astype(np.uint16), (x > lo) & (x < hi)
+
+
+def test_a_surface_keeps_its_novel_id_when_one_frame_calls_it_wall():
+    fus = LabelFusion(LabelFusionConfig(voxel_size=0.03, decay=0.9))
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    lab, pic = _labels_with_picture(pose, depth)
+    for _ in range(5):
+        out = fus.update(lab, depth, INTR, pose, {NOVEL})
+    assert np.array_equal(out, lab), "a steady labelling passes through unchanged"
+    wall_only = np.full((H, W), WALL, np.uint16)
+    out = fus.update(wall_only, depth, INTR, pose, {NOVEL})
+    assert (out[pic] == NOVEL).mean() > 0.95 and (out[~pic] == WALL).all()
+    # A lasting change wins after a few frames.
+    for _ in range(20):
+        out = fus.update(wall_only, depth, INTR, pose, {NOVEL})
+    assert (out == WALL).all()
+
+
+def test_the_map_is_in_world_coordinates():
+    """Seen from a camera moved 0.4 m sideways, the picture keeps its id where it lies
+    in the world, i.e. at other pixels than in the first view."""
+    fus = LabelFusion(LabelFusionConfig(voxel_size=0.03, decay=0.9))
+    a = _wall_pose(0.0)
+    da = _plane_depth(a)
+    lab_a, _ = _labels_with_picture(a, da)
+    for _ in range(4):
+        fus.update(lab_a, da, INTR, a, {NOVEL})
+    b = _wall_pose(0.4)
+    db = _plane_depth(b)
+    _, pic_b = _labels_with_picture(b, db)
+    out = fus.update(np.full((H, W), WALL, np.uint16), db, INTR, b, {NOVEL})
+    assert pic_b.sum() > 50
+    assert (out[pic_b] == NOVEL).mean() > 0.9
+    assert (out[~pic_b] == WALL).mean() > 0.97
+    _, pic_a_in_b = _labels_with_picture(a, da)
+    assert not np.array_equal(pic_a_in_b, pic_b), "the object moved in the image"
+
+
+def test_known_changes_are_left_to_the_frame_and_retired_ids_lose_their_votes():
+    fus = LabelFusion(LabelFusionConfig(voxel_size=0.03, decay=0.9))
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    lab, pic = _labels_with_picture(pose, depth)
+    chair = np.where(pic, NOVEL, CHAIR).astype(np.uint16)
+    for _ in range(5):
+        fus.update(chair, depth, INTR, pose, {NOVEL})
+    table = np.where(pic, NOVEL, TABLE).astype(np.uint16)
+    out = fus.update(table, depth, INTR, pose, {NOVEL})
+    assert (out[~pic] == TABLE).all(), "known-to-known: the frame decides (novel_only)"
+    # Discovery retired the id: the map no longer brings it back.
+    out = fus.update(np.full((H, W), TABLE, np.uint16), depth, INTR, pose, set())
+    assert (out == TABLE).all()
+    # Without novel_only the map holds a known label too.
+    all_cls = LabelFusion(LabelFusionConfig(voxel_size=0.03, decay=0.9, novel_only=False))
+    for _ in range(5):
+        all_cls.update(chair, depth, INTR, pose, {NOVEL})
+    out = all_cls.update(table, depth, INTR, pose, {NOVEL})
+    assert (out[~pic] == CHAIR).all()
+
+
+def test_pixels_without_depth_or_label_and_the_voxel_bound():
+    fus = LabelFusion(LabelFusionConfig(voxel_size=0.03, decay=0.9, max_voxels=1000))
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    lab, pic = _labels_with_picture(pose, depth)
+    fus.update(lab, depth, INTR, pose, {NOVEL})
+    assert len(fus) == 1000, "bounded: the plane has more voxels than that"
+    holes = depth.copy()
+    holes[:, :10] = np.nan
+    holes[:, 10:20] = 0.0
+    unlabelled = lab.copy()
+    unlabelled[pic] = 0
+    out = fus.update(unlabelled, holes, INTR, pose, {NOVEL})
+    assert (out[:, :20] == unlabelled[:, :20]).all(), "no depth: the frame's label stays"
+    with pytest.raises(ValueError, match="labels are"):
+        fus.update(lab[:10], depth, INTR, pose)
+    with pytest.raises(ValueError, match="pose"):
+        fus.update(lab, depth, INTR, np.eye(3))
+
+
+def _picture_view(x: float, rng, picture: bool = True):
+    """The plane seen from (x, 0, 0): confident wall logits, and a 0.6 x 0.4 m picture
+    at the world origin with the uncertain channel mix of an unseen class."""
+    pose = _wall_pose(x)
+    depth = _plane_depth(pose)
+    v = np.mgrid[0:H, 0:W][0]
+    pic = (np.abs(_world_x(pose, depth)) < 0.3) & (np.abs((v - INTR.cy) / INTR.fy * depth) < 0.2)
+    emb = rng.normal(0, 0.3, (H, W, len(CHANNEL_TO_ID))).astype(np.float32)
+    emb[..., list(CHANNEL_TO_ID).index(WALL)] += 5.0
+    if picture:
+        emb[pic] = rng.normal(0, 0.3, (int(pic.sum()), len(CHANNEL_TO_ID)))
+        emb[pic, 0] += 1.2
+        emb[pic, 1] += 1.0
+    return pose, depth, emb, pic
+
+
+def test_discoverer_fuses_with_a_pose_and_labels_alone_without():
+    """The Discoverer end to end: the picture is found as novel; a later frame whose
+    embedding calls it wall keeps its id where the map saw it (with the pose), and is
+    all wall without the pose."""
+    from neurncd_ros.core.discovery.labeller import Discoverer, DiscoveryConfig
+    from neurncd_ros.core.uncertainty import entropy
+
+    def run(with_pose: bool):
+        rng = np.random.default_rng(0)
+        d = Discoverer(DiscoveryConfig(), CHANNEL_TO_ID)
+        for i in range(5):
+            pose, depth, emb, pic = _picture_view(0.05 * i, rng)
+            lab = d.process(depth, INTR, emb, entropy(emb), i, None,
+                            pose=pose if with_pose else None)
+            assert (lab[pic] >= NOVEL_ID_START).mean() > 0.95
+        pose, depth, emb, pic = _picture_view(0.3, rng, picture=False)
+        out = d.process(depth, INTR, emb, entropy(emb), 5, None,
+                        pose=pose if with_pose else None)
+        return lab, out, pic, d
+
+    lab, out, pic, d = run(True)
+    novel_id = int(np.bincount(lab[lab >= NOVEL_ID_START]).argmax())
+    assert (out[pic] == novel_id).mean() > 0.9
+    assert (out[~pic] == WALL).mean() > 0.97
+    assert d.classes()[novel_id] == {"name": d.classes()[novel_id]["name"], "kind": "novel",
+                                     "pixels": int((out == novel_id).sum())}
+    _, alone, _, _ = run(False)
+    assert (alone == WALL).all()
