@@ -436,7 +436,7 @@ def _slug(pairs: list[str]) -> str:
 def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: int) -> None:
     """``--sweep key=v1,v2,...``: the scores of each value on the tuning scenes (the
     scenes rendered again for each value of an engine parameter), a table on stdout and
-    bench/results/ncd_sweep_<key>.json (how a default was chosen)."""
+    bench/results/ncd_sweep_<section>_<key>.json (how a default was chosen)."""
     if "=" not in args.sweep or "." not in args.sweep.split("=", 1)[0]:
         raise SystemExit(f"--sweep {args.sweep!r}: expected SECTION.KEY=V1,V2,...")
     key, raw = args.sweep.split("=", 1)
@@ -466,7 +466,7 @@ def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: in
     out = {"param": key, "tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
            "set": args.set, "rows": rows, "commit": commit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"ncd_sweep_{key.split('.')[-1]}{_slug(args.set)}.json"
+    path = RESULTS / f"ncd_sweep_{key.replace('.', '_')}{_slug(args.set)}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"{key} on tuning seeds {out['tune_seeds']} ({frames} frames each), percent")
     print(f"{'value':>10s} {'all':>7s} {'known':>7s} {'novel':>7s} {'id stab':>8s} {'found':>7s}")
@@ -505,7 +505,7 @@ def main() -> None:
                     help="override a parameter (YAML value) for every row")
     ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
                     help="only score one discovery parameter over these values on the tuning "
-                         "scenes (bench/results/ncd_sweep_<key>[_<set>].json), then stop")
+                         "scenes (bench/results/ncd_sweep_<section>_<key>[_<set>].json), then stop")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)

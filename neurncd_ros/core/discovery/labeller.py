@@ -42,13 +42,13 @@ Per processed frame (:meth:`Discoverer.process`):
    of its own, so the object's pixels would flip between ids from frame to
    frame. Different novel classes lie further apart than that (chosen on the
    tuning seeds: 0.3-0.5 score alike, 0.6 merges classes;
-   bench/results/ncd_sweep_novel_merge_distance.json).
+   bench/results/ncd_sweep_discovery_novel_merge_distance.json).
 
 Defaults (``min_cluster_segments`` 1, ``segment_novelty`` on; with mcl's and
 modulation's) were chosen by ``bench/ncd.py --tune`` on the rendered embedding
 of 8 tuning scenes (``seeds.TUNE``; scores in bench/results/ncd_tuning.json).
 ``entropy_threshold`` 0.6 was chosen for the shipped backbone's novelty branch
-on the same scenes (bench/results/ncd_sweep_entropy_threshold.json): the branch
+on the same scenes (bench/results/ncd_sweep_discovery_entropy_threshold.json): the branch
 makes the normalised entropy of pictures, windows and TVs high and that of
 known classes low, so the threshold sits between them; without the branch
 (``backbone.novelty_branch`` false) the net is confident even on novel objects
@@ -67,12 +67,12 @@ label within ``novel_fill_px`` (the bands between the pieces of a novel object);
 with ``novel_fill_known`` (default) so do uncertain pixels that a known segment
 holds (a picture's frame or a window's glazing cut into the wall segment; tuning
 seeds: all / novel 73.9 / 51.9 -> 74.1 / 52.7, stability 0.902 -> 0.904, six of the
-eight scenes up, bench/results/ncd_sweep_novel_fill_known.json).
+eight scenes up, bench/results/ncd_sweep_discovery_novel_fill_known.json).
 With the view's pose, the frame's labels then pass through the voxel map of
 :mod:`fusion` (``label_fusion.enabled``, default): a surface keeps the novel id it
 had in the frames before although one frame's segment merged it into the wall
 (tuning seeds: stability 0.904 -> 0.924, all-class 74.1 -> 74.3;
-bench/results/ncd_sweep_label_fusion.*.json).
+bench/results/ncd_sweep_label_fusion_*.json).
 Label 0 is produced only at pixels outside every decided segment whose
 embedding is not finite.
 
@@ -272,7 +272,7 @@ class Discoverer:
         per-pixel "wall". Where the embedding itself is unsure over a large region, that
         region is evidence to cluster like any segment (on the tuning scenes, window IoU
         38.7 -> 65, novel-id stability 0.901 -> 0.890;
-        bench/results/ncd_sweep_uncertain_region_px.json).
+        bench/results/ncd_sweep_discovery_uncertain_region_px.json).
         """
         if self.cfg.uncertain_region_px <= 0:
             return segments

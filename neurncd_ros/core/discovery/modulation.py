@@ -79,7 +79,7 @@ class ModulationConfig:
     feature_weight: float = param(0.6, "scale of the segment's L2-normalised mean backbone "
                                   "feature appended to the descriptor, when the embedding "
                                   "carries features (backbone.features); 0 = not used (0.6 "
-                                  "tuned, bench/results/ncd_sweep_feature_weight_"
+                                  "tuned, bench/results/ncd_sweep_modulation_feature_weight_"
                                   "features-true.json)", lo=0.0, hi=100.0)
 
 
