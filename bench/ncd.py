@@ -43,6 +43,8 @@ the report gives the mean over scenes. Rows of the report (percent):
   (``discovery.uncertain_region_px`` 1200, off by default);
 - ``no_label_fusion``: every frame labelled on its own, without the voxel map of
   labels that keeps a surface's novel id (``label_fusion.enabled`` off);
+- ``no_pixel_known``: every pixel of a known segment takes the segment's class
+  (``discovery.pixel_known`` off);
 - ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
@@ -577,6 +579,8 @@ def main() -> None:
         "backbone": (base, "argmax"),
         **({"no_label_fusion": (with_overrides(base, {"label_fusion.enabled": False}),
                                 "rendered")} if base.label_fusion.enabled else {}),
+        **({"no_pixel_known": (with_overrides(base, {"discovery.pixel_known": False}),
+                               "rendered")} if base.discovery.pixel_known else {}),
         **({} if base.discovery.uncertain_region_px else {"uncertain_regions": (
             with_overrides(base, {"discovery.uncertain_region_px": 1200}), "rendered")}),
     }

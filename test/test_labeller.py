@@ -168,6 +168,27 @@ def test_every_pixel_labelled_and_unsegmented_pixels_use_embedding_argmax():
     assert (lab2 > 0).sum() == H * W - 1
 
 
+def test_confident_pixels_keep_their_own_known_class_inside_a_known_segment():
+    """A chair segment that took in a strip of floor (one depth segment over both):
+    the floor strip's pixels, confidently floor, stay floor with pixel_known; without
+    it the whole segment is chair. Uncertain pixels follow the segment."""
+    seg, emb, ent, kinds = _frame(LAYOUT, 0)
+    strip = (seg == 6) & (np.arange(W)[None, :] >= 76)  # the chair box's right edge
+    rng = np.random.default_rng(5)
+    emb[strip] = _logits("floor", rng, int(strip.sum()))
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    lab = _discoverer().process_segments(seg, emb, ent)
+    assert (lab[strip] == CLASS_ID["floor"]).all()
+    assert (lab[(seg == 6) & ~strip] == CLASS_ID["chair"]).all()
+    off = _discoverer(pixel_known=False).process_segments(seg, emb, ent)
+    assert (off[seg == 6] == CLASS_ID["chair"]).all()
+    unsure = ent.copy()
+    unsure[strip] = np.log(S)  # as uncertain as it gets: no longer its own
+    lab = _discoverer().process_segments(seg, emb, unsure)
+    assert (lab[strip] == CLASS_ID["chair"]).all()
+
+
 def test_recluster_period_assigns_between_reclusterings():
     d = _discoverer(recluster_period=3)
     seg, emb, ent, kinds = _frame(LAYOUT, 0)
