@@ -24,8 +24,9 @@ the report gives the mean over scenes. Rows of the report (percent):
 - ``no_colour_edges``: segmentation without the colour cue (geometry + embedding);
 - ``no_colour_descriptor``: descriptors without the mean Lab colour part
   (``modulation.colour_weight`` 0);
-- ``no_mode_split``: no splitting of small, distant clusters of a known class
-  into novel ones (``discovery.mode_split`` off);
+- ``mode_split`` (``no_mode_split`` when the default is on): small, distant
+  clusters of a known class split off as novel (``discovery.mode_split``, off by
+  default);
 - ``no_novel_merge``: novel clusters never share an id (``discovery.novel_merge_distance``
   0), each Markov cluster its own novel class;
 - ``no_colour_no_split``: both off (the descriptor and decision before issue 11);
@@ -567,7 +568,9 @@ def main() -> None:
         "entropy_only": (with_overrides(base, {"modulation.mode": "entropy"}), "rendered"),
         "no_colour_descriptor": (with_overrides(base, {"modulation.colour_weight": 0.0}),
                                  "rendered"),
-        "no_mode_split": (with_overrides(base, {"discovery.mode_split": False}), "rendered"),
+        **({"no_mode_split": (with_overrides(base, {"discovery.mode_split": False}),
+                              "rendered")} if base.discovery.mode_split else
+           {"mode_split": (with_overrides(base, {"discovery.mode_split": True}), "rendered")}),
         "no_novel_merge": (with_overrides(base, {"discovery.novel_merge_distance": 0.0}),
                            "rendered"),
         "no_colour_no_split": (with_overrides(base, {"modulation.colour_weight": 0.0,

@@ -323,13 +323,13 @@ def test_colour_and_mode_split_find_a_picture_the_logits_call_wall():
     kinds[kinds == "wall2"] = "wall"
     kinds[kinds == "floor2"] = "floor"
     cfg = dict(STAND_IN, min_cluster_segments=1)
-    with_both = _discoverer(**cfg).process_segments(seg, emb, ent, rgb)
+    with_both = _discoverer(**cfg, mode_split=True).process_segments(seg, emb, ent, rgb)
     assert _label_of(with_both, kinds, "picture") == (NOVEL_ID_START, 1.0)
     for kind in ("wall", "floor"):
         assert _label_of(with_both, kinds, kind) == (CLASS_ID[kind], 1.0)
     no_split = _discoverer(**cfg, mode_split=False).process_segments(seg, emb, ent, rgb)
     assert _label_of(no_split, kinds, "picture") == (CLASS_ID["wall"], 1.0)
-    d = Discoverer(DiscoveryConfig(min_cluster_pixels=50, **cfg), CHANNEL_TO_ID,
+    d = Discoverer(DiscoveryConfig(min_cluster_pixels=50, mode_split=True, **cfg), CHANNEL_TO_ID,
                    mcl_cfg=MCLConfig(k=10), mod_cfg=ModulationConfig(colour_weight=0.0))
     assert _label_of(d.process_segments(seg, emb, ent, rgb), kinds, "picture") == \
         (CLASS_ID["wall"], 1.0)
