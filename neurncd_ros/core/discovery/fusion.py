@@ -165,7 +165,11 @@ class LabelFusion:
         rows = self._rows_of(ukeys)
         voting = lab > 0
         if voting.any():
-            ids, lab_idx = np.unique(lab[voting], return_inverse=True)
+            present = np.bincount(lab[voting])  # label ids are small: no sort needed
+            ids = np.flatnonzero(present)
+            lut = np.zeros(present.size, np.int64)
+            lut[ids] = np.arange(ids.size)
+            lab_idx = lut[lab[voting]]
             cols = self._column_of(ids)
             v = inv[voting]
             # One unit of mass per observed voxel, spread over its pixels' labels.
