@@ -164,3 +164,20 @@ def test_discoverer_fuses_with_a_pose_and_labels_alone_without():
                                      "pixels": int((out == novel_id).sum())}
     _, alone, _, _ = run(False)
     assert (alone == WALL).all()
+
+
+def test_a_bad_pose_is_refused_before_discovery_changes_state():
+    from neurncd_ros.core.discovery.labeller import Discoverer, DiscoveryConfig
+    from neurncd_ros.core.uncertainty import entropy
+
+    rng = np.random.default_rng(0)
+    d = Discoverer(DiscoveryConfig(), CHANNEL_TO_ID)
+    pose, depth, emb, _ = _picture_view(0.0, rng)
+    d.process(depth, INTR, emb, entropy(emb), 0, None, pose=pose)
+    before = (d.memory_len, len(d.fusion), d.classes())
+    bad = pose.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="view pose"):
+        d.process(depth, INTR, emb, entropy(emb), 1, None, pose=bad)
+    assert (d.memory_len, len(d.fusion), d.classes()) == before
+

@@ -196,11 +196,10 @@ class LabelFusion:
             for i, c in self._columns.items():
                 ids_of_col[c] = i
             fused = np.where(has, ids_of_col[best], 0)[inv]
+            vals = out[mask]
             keep = fused > 0
             if self.cfg.novel_only:
-                cur = out[mask]
-                keep &= (fused >= NOVEL_ID_START) | (cur >= NOVEL_ID_START)
-            vals = out[mask]
+                keep &= (fused >= NOVEL_ID_START) | (vals >= NOVEL_ID_START)
             vals[keep] = fused[keep]
             out[mask] = vals
         self._bound()

@@ -99,7 +99,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..camera import Intrinsics
+from ..camera import Intrinsics, check_pose
 from ..classes import NOVEL_ID_START, NUM_CLASSES, class_name
 from ..params import param
 from .fusion import LabelFusionConfig, LabelFusion
@@ -259,6 +259,8 @@ class Discoverer:
         if embedding.shape[:2] != np.asarray(depth).shape:
             raise ValueError(f"embedding is {embedding.shape[:2]} but depth is "
                              f"{np.asarray(depth).shape}")
+        if pose is not None:  # checked before any state changes
+            pose = check_pose(pose, "view pose")
         # The embedding, entropy and colour also cut segments where the appearance
         # changes (geoseg's appearance and colour edges): flush pictures, TVs, windows
         # and doors leave the wall.
@@ -268,8 +270,7 @@ class Discoverer:
         if self.fusion is not None and pose is not None:
             labels = self.fusion.update(labels, depth, intrinsics, pose,
                                         set(self._novel_members))
-            ids, counts = np.unique(labels, return_counts=True)
-            self._last_counts = dict(zip(ids.tolist(), counts.tolist()))
+            self._count(labels)
         self.last_stamp_ns = int(stamp_ns)
         return labels
 
@@ -342,9 +343,13 @@ class Discoverer:
         seg_label[self._mem.uid[mine] - (self._next_uid - n)] = self._mem.cluster[mine]
         labels = self._paint(segments, seg_label, embedding, entropy)
         self.last_segments = segments
+        self._count(labels)
+        return labels
+
+    def _count(self, labels: np.ndarray) -> None:
+        """Pixels per id of the last labelled frame, for :meth:`classes`."""
         ids, counts = np.unique(labels, return_counts=True)
         self._last_counts = dict(zip(ids.tolist(), counts.tolist()))
-        return labels
 
     # ------------------------------------------------------------ memory
 
@@ -529,15 +534,16 @@ class Discoverer:
         lab = np.where(segments >= 0, seg_label[np.maximum(segments, 0)] if seg_label.size
                        else UNDECIDED, UNDECIDED)
         out = np.where(lab > 0, lab, fallback).astype(np.uint16)
+        limit = self.cfg.entropy_threshold * np.log(self.S)
         if self.cfg.pixel_known and entropy is not None:
-            sure = np.nan_to_num(entropy, nan=np.inf) < self.cfg.entropy_threshold * np.log(self.S)
+            sure = np.nan_to_num(entropy, nan=np.inf) < limit
             own = sure & (lab > 0) & (lab < NOVEL_ID_START) & (fallback > 0)
             out[own] = fallback[own]
         reach = self.cfg.novel_fill_px * segments.shape[1] / self.seg_cfg.reference_width
         if reach <= 0 or entropy is None:
             return out
         novel = out >= NOVEL_ID_START
-        hot = np.nan_to_num(entropy, nan=0.0) > self.cfg.entropy_threshold * np.log(self.S)
+        hot = np.nan_to_num(entropy, nan=0.0) > limit
         hot &= (lab < NOVEL_ID_START) if self.cfg.novel_fill_known else (lab <= 0)
         if not novel.any() or not hot.any():
             return out

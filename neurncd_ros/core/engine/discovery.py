@@ -19,7 +19,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, check_pose
+from ..camera import Intrinsics
 from ..params import param
 from ..sync import StampSync
 from .health import Health, sync_reporter
@@ -173,11 +173,8 @@ class DiscoveryStage:
         if spec.feature_channels and self.cfg.modulation.feature_weight > 0:
             features = resize_to(np.ascontiguousarray(emb[..., spec.logit_channels:],
                                                       np.float32), h, w)
-        pose = None
-        if view.pose is not None:
-            pose = check_pose(view.pose, "view pose")
         labels = self.discoverer.process(depth, view.intrinsics, logits, ent, view.stamp_ns,
-                                         rgb, features, pose)
+                                         rgb, features, view.pose)
         self.health.count("labelled")
         self.health.set_state("running")
         return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)
