@@ -181,3 +181,44 @@ def test_a_bad_pose_is_refused_before_discovery_changes_state():
         d.process(depth, INTR, emb, entropy(emb), 1, None, pose=bad)
     assert (d.memory_len, len(d.fusion), d.classes()) == before
 
+
+
+def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
+    """One wide picture: a first view calls it NOVEL, a view from further right calls it
+    NOVEL + 1 (Markov clustering split it); the part only the second view sees is
+    published as NOVEL too, and so are later frames, while discovery keeps both ids.
+    Without aliases the new part keeps NOVEL + 1."""
+    other = NOVEL + 1
+
+    def views(cfg: LabelFusionConfig):
+        fus = LabelFusion(cfg)
+        a = _wall_pose(-0.4)
+        da = _plane_depth(a)
+        lab_a, _ = _labels_with_picture(a, da, -0.9, 0.9)
+        for _ in range(3):
+            fus.update(lab_a, da, INTR, a, {NOVEL})
+        b = _wall_pose(0.6)
+        db = _plane_depth(b)
+        lab_b, pic_b = _labels_with_picture(b, db, -0.9, 0.9)
+        lab_b[pic_b] = other
+        new_part = pic_b & (_world_x(b, db) > 0.6)  # the first view never saw it
+        assert new_part.sum() > 100
+        return fus, [fus.update(lab_b, db, INTR, b, {NOVEL, other}) for _ in range(2)], \
+            pic_b, new_part, (lab_b, db, b)
+
+    fus, outs, pic_b, new_part, (lab_b, db, b) = views(LabelFusionConfig(alias_share=0.4))
+    for out in outs:
+        assert (out[pic_b] == NOVEL).all() and (out[~pic_b] == WALL).all()
+    assert fus.aliases == {other: NOVEL}
+    # Discovery retires NOVEL but keeps NOVEL + 1: the id it is published as stays.
+    out = fus.update(lab_b, db, INTR, b, {other})
+    assert (out[pic_b] == NOVEL).all()
+    # Discovery retires NOVEL + 1: the alias goes with it.
+    fus.update(np.full((H, W), WALL, np.uint16), db, INTR, b, {NOVEL})
+    assert fus.aliases == {}
+
+    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.0))
+    assert (outs[-1][new_part] == other).all()
+    # Where a novel id only touches another's surface (under the share), it keeps its id.
+    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.95))
+    assert (outs[-1][new_part] == other).all()

@@ -24,6 +24,15 @@ Novel ids that discovery retires (merged into another id, or no longer live)
 lose their votes: :meth:`LabelFusion.update` takes the live novel ids, so the
 map never brings back an id discovery no longer publishes.
 
+Aliases (``alias_share``): Markov clustering sometimes gives one large object two
+novel ids, one for the part seen first and one for the part a later viewpoint
+adds (a window seen from two sides of the room). When at least ``alias_share`` of
+a frame's pixels of novel id B lie on voxels whose strongest label is another
+novel id A, B is published as A from then on, for as long as discovery keeps B.
+Chosen on the tuning seeds 500-509 (bench/results/ncd_sweep_label_fusion_alias_share.json):
+0 / 0.3 / 0.4 / 0.5 give novel-id stability 0.892 / 0.895 / 0.896 / 0.893 (0.954 /
+0.968 / 0.963 / 0.959 over the pixels given a novel id), mIoU unchanged to 0.1.
+
 Pure numpy; the map is a sorted array of packed voxel keys with a row of votes
 per key, grown as new surface is seen and bounded by ``max_voxels`` (the voxels
 least recently observed are dropped first).
@@ -57,6 +66,11 @@ class LabelFusionConfig:
                              "label or the map's is novel (known-to-known changes are left "
                              "to the frame: the map's voxels blur the known classes' "
                              "boundaries)")
+    alias_share: float = param(0.4, "a novel id of the frame whose pixels fall at least "
+                               "this share on surface the map gives another novel id takes "
+                               "that id from then on (one object Markov clustering split "
+                               "into two ids seen from two viewpoints; 0 = off)",
+                               lo=0.0, hi=1.0)
     max_voxels: int = param(500_000, "voxels kept (about 450 m2 of surface at 3 cm; "
                             "beyond, the least recently observed are dropped)", lo=1000,
                             hi=10**8)
@@ -77,9 +91,15 @@ class LabelFusion:
         self._n = 0                            # storage rows in use
         self._columns: dict[int, int] = {}     # label id -> column
         self._frame = 0
+        self._alias: dict[int, int] = {}       # novel id -> the novel id it is published as
 
     def __len__(self) -> int:
         return int(self._keys.size)
+
+    @property
+    def aliases(self) -> dict[int, int]:
+        """Novel id -> the novel id it is published as (``alias_share``)."""
+        return dict(self._alias)
 
     # ------------------------------------------------------------ helpers
     def _pack(self, points: np.ndarray) -> np.ndarray:
@@ -126,9 +146,12 @@ class LabelFusion:
         return self._row[pos]
 
     def _retire(self, live_novel: set[int] | None) -> None:
-        """Forget the votes of novel ids discovery no longer publishes."""
+        """Forget the votes of novel ids discovery no longer publishes (an id others are
+        published as lives while they do)."""
         if live_novel is None:
             return
+        self._alias = {a: b for a, b in self._alias.items() if a in live_novel}
+        live_novel = set(live_novel) | set(self._alias.values())
         dead = {i for i in self._columns if i >= NOVEL_ID_START and i not in live_novel}
         if dead:
             keep = sorted((c, i) for i, c in self._columns.items() if i not in dead)
@@ -150,6 +173,50 @@ class LabelFusion:
         self._n = int(old_rows.size)
         self._row = np.arange(self._n, dtype=np.int64)
 
+    def _best_ids(self, rows: np.ndarray) -> np.ndarray:
+        """Strongest label id of these storage rows (0 where a row has no vote)."""
+        if not self._votes.shape[1]:
+            return np.zeros(rows.size, np.int64)
+        vox = self._votes[rows]
+        best = vox.argmax(1)
+        ids_of_col = np.zeros(self._votes.shape[1], np.int64)
+        for i, c in self._columns.items():
+            ids_of_col[c] = i
+        return np.where(vox[np.arange(rows.size), best] > 0, ids_of_col[best], 0)
+
+    def _aliased(self, lab: np.ndarray, pix_rows: np.ndarray) -> np.ndarray:
+        """The frame's labels (at its depth pixels) with novel ids renamed: known aliases
+        first, then new ones where a novel id's pixels land mostly on surface the map
+        already gives another novel id (``alias_share``)."""
+        if self._alias:
+            src = np.array(list(self._alias), np.int64)
+            lut = np.arange(max(int(lab.max()), int(src.max())) + 1, dtype=np.int64)
+            lut[src] = [self._alias[a] for a in src.tolist()]
+            lab = lut[lab]
+        novel = lab >= NOVEL_ID_START
+        if not novel.any() or not self._votes.shape[1]:
+            return lab
+        before = self._best_ids(pix_rows[novel])
+        mine = lab[novel]
+        for b in np.unique(mine).tolist():
+            sel = mine == b
+            other = before[sel]
+            other = other[(other >= NOVEL_ID_START) & (other != b)]
+            if not other.size:
+                continue
+            ids, n = np.unique(other, return_counts=True)
+            if n.max() >= self.cfg.alias_share * sel.sum():
+                a = int(ids[n.argmax()])
+                a = self._alias.get(a, a)
+                if a == b:
+                    continue
+                self._alias[b] = a
+                for k, v in self._alias.items():  # keep the table flat
+                    if v == b:
+                        self._alias[k] = a
+                lab = np.where(lab == b, a, lab)
+        return lab
+
     # ------------------------------------------------------------ main entry
     def update(self, labels: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
                pose: np.ndarray, live_novel: set[int] | None = None) -> np.ndarray:
@@ -170,6 +237,9 @@ class LabelFusion:
         keys = self._pack(points)
         ukeys, inv = np.unique(keys, return_inverse=True)
         rows = self._rows_of(ukeys)
+        if self.cfg.alias_share > 0:
+            lab = self._aliased(lab, rows[inv])
+            out[mask] = lab
         voting = lab > 0
         if voting.any():
             present = np.bincount(lab[voting])  # label ids are small: no sort needed
@@ -189,13 +259,7 @@ class LabelFusion:
             self._votes[np.ix_(r, cols)] += mass[obs] / total[obs]
             self._seen[r] = self._frame
         if self._votes.shape[1]:
-            vox = self._votes[rows]
-            best = vox.argmax(1)
-            has = vox[np.arange(rows.size), best] > 0
-            ids_of_col = np.zeros(self._votes.shape[1], np.int64)
-            for i, c in self._columns.items():
-                ids_of_col[c] = i
-            fused = np.where(has, ids_of_col[best], 0)[inv]
+            fused = self._best_ids(rows)[inv]
             vals = out[mask]
             keep = fused > 0
             if self.cfg.novel_only:

@@ -561,5 +561,7 @@ class Discoverer:
         """{id: {"name", "kind": "known"|"novel", "pixels": count in the last labelled frame}}."""
         ids = set(self._last_counts) | set(self._novel_members)
         ids.discard(0)
+        if self.fusion is not None:  # ids published under another id are not classes
+            ids -= set(self.fusion.aliases)
         return {i: {"name": class_name(i), "kind": "novel" if i >= NOVEL_ID_START else "known",
                     "pixels": int(self._last_counts.get(i, 0))} for i in sorted(ids)}
