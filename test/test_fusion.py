@@ -217,6 +217,20 @@ def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
     fus.update(np.full((H, W), WALL, np.uint16), db, INTR, b, {NOVEL})
     assert fus.aliases == {}
 
+    # Two ids side by side in one frame are two objects to discovery: the right one lies
+    # mostly (2/3) on surface the map gives the left one, and still keeps its id.
+    fus = LabelFusion(LabelFusionConfig(alias_share=0.4))
+    a = _wall_pose(-0.4)
+    da = _plane_depth(a)
+    lab_a, _ = _labels_with_picture(a, da, -0.9, 0.9)
+    for _ in range(3):
+        fus.update(lab_a, da, INTR, a, {NOVEL})
+    right = pic_b & (_world_x(b, db) > 0.0)
+    both = np.where(right, other, lab_b).astype(np.uint16)
+    both[pic_b & ~right] = NOVEL
+    out = fus.update(both, db, INTR, b, {NOVEL, other})
+    assert fus.aliases == {} and (out[new_part] == other).all()
+
     _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.0))
     assert (outs[-1][new_part] == other).all()
     # Where a novel id only touches another's surface (under the share), it keeps its id.
