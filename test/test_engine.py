@@ -374,13 +374,13 @@ def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges
     when the segmentation's colour edges are off."""
     from neurncd_ros.core.discovery.labeller import Discoverer
     seen = []
-    orig = Discoverer.process_segments
+    orig = Discoverer._label_segments  # what process() labels the segments with
 
     def spy(self, segments, embedding, entropy, colour=None, features=None):
         seen.append(colour)
         return orig(self, segments, embedding, entropy, colour, features)
 
-    monkeypatch.setattr(Discoverer, "process_segments", spy)
+    monkeypatch.setattr(Discoverer, "_label_segments", spy)
     f = frames[10]
     emb = resize_to(backbone.embed(f.rgb, f.depth), 36, 48)
     view = ViewInput(f.stamp_ns, f.depth, f.intrinsics, emb, uncertainty.entropy(emb), f.rgb)
@@ -415,7 +415,7 @@ def test_backbone_features_ride_with_the_keyframes_into_each_segment_descriptor(
     np.testing.assert_allclose(emb[..., :9], b.predict(f.rgb, f.depth), atol=1e-4)
     assert np.abs(emb[..., 9:]).max() > 0 and np.isfinite(emb).all()
     widths = []
-    orig = Discoverer.process_segments
+    orig = Discoverer._label_segments  # what process() labels the segments with
 
     def spy(self, segments, embedding, entropy, colour=None, features=None):
         out = orig(self, segments, embedding, entropy, colour, features)
@@ -423,7 +423,7 @@ def test_backbone_features_ride_with_the_keyframes_into_each_segment_descriptor(
                        self._mem.desc.shape[1]))
         return out
 
-    monkeypatch.setattr(Discoverer, "process_segments", spy)
+    monkeypatch.setattr(Discoverer, "_label_segments", spy)
     engine = OfflineEngine(c, b)
     outs = list(engine.run(frames[:30], progress=False))
     assert outs and all(o.view.embedding.shape[-1] == 29 for o in outs)

@@ -189,10 +189,11 @@ class LabelFusion:
             ids_of_col[c] = i
         return np.where(vox[np.arange(rows.size), best] > 0, ids_of_col[best], 0)
 
-    def _aliased(self, lab: np.ndarray, pix_rows: np.ndarray) -> np.ndarray:
-        """The frame's labels (at its depth pixels) with novel ids renamed: known aliases
-        first, then new ones where a novel id's pixels land mostly on surface the map
-        already gives another novel id (``alias_share``)."""
+    def _aliased(self, lab: np.ndarray, rows: np.ndarray, inv: np.ndarray) -> np.ndarray:
+        """The frame's labels (at its depth pixels; their voxels' storage ``rows`` and
+        each pixel's voxel ``inv``) with novel ids renamed: known aliases first, then new
+        ones where a novel id's pixels land mostly on surface the map already gives
+        another novel id (``alias_share``)."""
         if self._alias:
             src = np.array(list(self._alias), np.int64)
             lut = np.arange(max(int(lab.max()), int(src.max())) + 1, dtype=np.int64)
@@ -201,10 +202,10 @@ class LabelFusion:
         novel = lab >= NOVEL_ID_START
         if not novel.any() or not self._votes.shape[1]:
             return lab
-        before = self._best_ids(pix_rows[novel])
+        before = self._best_ids(rows)[inv[novel]]  # the map before this frame's votes
         mine = lab[novel]
         present = np.unique(mine)
-        for b in np.unique(mine).tolist():
+        for b in present.tolist():
             sel = mine == b
             other = before[sel]
             # Only onto an id the frame does not show: two ids discovery tells apart
@@ -246,7 +247,7 @@ class LabelFusion:
         ukeys, inv = np.unique(keys, return_inverse=True)
         rows = self._rows_of(ukeys)
         if self.cfg.alias_share > 0:
-            lab = self._aliased(lab, rows[inv])
+            lab = self._aliased(lab, rows, inv)
             out[mask] = lab
         voting = lab > 0
         if voting.any():

@@ -266,11 +266,11 @@ class Discoverer:
         # and doors leave the wall.
         segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
         segments = self._uncertain_regions(segments, entropy)
-        labels = self.process_segments(segments, embedding, entropy, colour, features)
+        labels = self._label_segments(segments, embedding, entropy, colour, features)
         if self.fusion is not None and pose is not None:
             labels = self.fusion.update(labels, depth, intrinsics, pose,
                                         set(self._novel_members))
-            self._count(labels)
+        self._count(labels)
         self.last_stamp_ns = int(stamp_ns)
         return labels
 
@@ -311,6 +311,15 @@ class Discoverer:
 
         ``colour`` feeds the descriptor's colour part (``modulation.colour_weight``),
         ``features`` its feature part (``modulation.feature_weight``)."""
+        labels = self._label_segments(segments, embedding, entropy, colour, features)
+        self._count(labels)
+        return labels
+
+    def _label_segments(self, segments: np.ndarray, embedding: np.ndarray,
+                        entropy: np.ndarray, colour: np.ndarray | None,
+                        features: np.ndarray | None) -> np.ndarray:
+        """:meth:`process_segments` without counting the ids for :meth:`classes` (the
+        caller counts the labels it publishes, after the label fusion)."""
         stats, mean_logit = segment_stats(
             segments, embedding, entropy, self.mod_cfg.entropy_interior,
             colour if self.mod_cfg.colour_weight > 0 else None,
@@ -343,7 +352,6 @@ class Discoverer:
         seg_label[self._mem.uid[mine] - (self._next_uid - n)] = self._mem.cluster[mine]
         labels = self._paint(segments, seg_label, embedding, entropy)
         self.last_segments = segments
-        self._count(labels)
         return labels
 
     def _count(self, labels: np.ndarray) -> None:
