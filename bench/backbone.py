@@ -17,7 +17,10 @@ same net without its branch (``default_no_branch_ms_320x240``, the difference
 ``default_branch_cost_ms``) and the net exactly as trained (``default_unfolded_ms_320x240``,
 the ratio ``default_folding_speedup``); ``default_ms_320x240_p10`` / ``_p90`` and
 ``default_share_within_target`` (frames within the 40 ms budget, a fraction) describe the
-spread, since this machine's speed drifts.
+spread, since this machine's speed drifts. ``default_precision`` is what
+``backbone.precision`` auto chose here; when it is bfloat16, the same net in float32 is
+timed in the same rounds (``default_float32_ms_320x240``, the ratio
+``default_bfloat16_speedup``) and scored on the test seeds (``test_float32_*``).
 
     .venv/bin/python bench/backbone.py            # full: 5 + 5 held-out seeds x 30 frames
     .venv/bin/python bench/backbone.py --quick    # fewer runs / frames (smoke)
@@ -91,11 +94,14 @@ TARGET_MS = 40.0
 """The frame budget of issue 11: one 320x240 frame through predict() on 2 cores."""
 
 
-def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None, runs: int) -> dict:
+def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None,
+                      float32: bb.Backbone | None, runs: int) -> dict:
     """predict() of the package's net (batch norms folded, NHWC, with its novelty
-    branch), of the same net without the branch (``plain``; None when the weights have
-    no branch), and of the net exactly as trained (as read from the weight file), one
-    call of each per round, ``runs`` rounds.
+    branch, in the precision ``backbone.precision`` auto resolves to), of the same net
+    without the branch (``plain``; None when the weights have no branch), of the same
+    net in float32 (``float32``; None when the package's already is), and of the net
+    exactly as trained (as read from the weight file), one call of each per round,
+    ``runs`` rounds.
 
     Why interleaved: this machine's speed drifts by up to 2x over minutes (other
     guests of the host); timing the variants one after the other made the branch look
@@ -108,9 +114,9 @@ def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None, runs: in
                           backbone.channel_to_id, backbone.input_size, "cpu",
                           small.prepare_inputs)
     trained.net.novelty_branch = backbone.novelty_branch
-    variants = {"default": backbone, "no_branch": plain, "unfolded": trained}
-    if plain is None:
-        del variants["no_branch"]
+    variants = {"default": backbone, "no_branch": plain, "float32": float32,
+                "unfolded": trained}
+    variants = {k: v for k, v in variants.items() if v is not None}
     rng = np.random.default_rng(1)
     rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
     depth = (0.5 + 4 * rng.random((240, 320))).astype(np.float32)
@@ -136,6 +142,9 @@ def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None, runs: in
     if "no_branch" in ms:
         res["default_no_branch_ms_320x240"] = ms["no_branch"]
         res["default_branch_cost_ms"] = ms["default"] - ms["no_branch"]
+    if "float32" in ms:
+        res["default_float32_ms_320x240"] = ms["float32"]
+        res["default_bfloat16_speedup"] = ms["float32"] / ms["default"]
     return res
 
 
@@ -263,8 +272,13 @@ def main() -> int:
     plain = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
                                                 novelty_branch=False))
              if backbone.novelty_branch else None)
+    # The same net in float32, when backbone.precision auto chose bfloat16 here.
+    float32 = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
+                                                  precision="float32"))
+               if backbone.input_dtype != torch.float32 else None)
+    res["default_precision"] = bb.precision_name(backbone)
     res.update(default_speed(backbone, runs))
-    res.update(interleaved_speed(backbone, plain, 60 if args.quick else 300))
+    res.update(interleaved_speed(backbone, plain, float32, 60 if args.quick else 300))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).
@@ -272,6 +286,9 @@ def main() -> int:
     if plain is not None:
         res.update(accuracy(plain, 5 if args.quick else 1, seeds.TEST[:5],
                             "test_no_branch")[0])
+    if float32 is not None:
+        res.update(accuracy(float32, 5 if args.quick else 1, seeds.TEST[:5],
+                            "test_float32")[0])
     if not args.no_esanet:
         res.update(esanet_speed(3 if args.quick else 10))
     from neurncd_ros.core.backbone import small

@@ -18,7 +18,7 @@ the bag), ``latency_median_s``, ``latency_p95_s``, ``keyframes_labelled_share``
 resident memory, sampled every 0.25 s), ``cpu_share_per_node`` (CPU seconds /
 wall seconds), ``mapper_iterations_per_s``, ``shutdown_s`` per node (SIGINT to
 exit), ``online_miou_*`` and ``offline_miou_*``, and ``machine_probe_ms`` (the
-default backbone on one 320x240 frame, 1 thread, median) to compare machines:
+default backbone in float32 on one 320x240 frame, 1 thread, median) to compare machines:
 on a machine slower than a 40 ms probe, ``probe_scale`` = probe / 40 and the
 ``*_at_probe_40ms`` keys give the rate times it and the latencies divided by it.
 
@@ -158,13 +158,16 @@ def rss_and_cpu(pid: int) -> tuple[float, float] | None:
 
 
 def machine_probe_ms() -> float:
+    """The default net in float32 on one 320x240 frame, one thread, median ms: a fixed
+    workload to compare machines and days (float32 whatever ``backbone.precision``
+    chooses, so probes taken before bfloat16 compare with those after)."""
     import torch
 
     from neurncd_ros import synth
     from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
 
     torch.set_num_threads(1)
-    bb = load_backbone(BackboneConfig(num_threads=1))
+    bb = load_backbone(BackboneConfig(num_threads=1, precision="float32"))
     f = next(iter(synth.generate(2000, 1, synth.SynthConfig())))
     for _ in range(3):
         bb.predict(f.rgb, f.depth)

@@ -80,10 +80,42 @@ class BackboneConfig:
                            "modulation.feature_weight); the embedding topic grows 29/9 times, "
                            "so pair it with embedding_node.output_scale 0.5")
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))
+    precision: str = param("auto", "arithmetic of the network's convolutions: bfloat16 is "
+                           "about 1.4x faster on a CPU with native bfloat16 (AVX512-BF16) and "
+                           "moves the argmax of a fraction of a percent of pixels, at class "
+                           "borders; the default net keeps its class heads, so logits and "
+                           "entropy, in float32; auto = bfloat16 where the CPU has it "
+                           "natively, else float32 (bench/results/backbone.json)",
+                           choices=("auto", "float32", "bfloat16"))
     num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
                              "(0 = leave torch's setting); 1 because the "
                              "nodes share the cores and more threads than free cores stall "
                              "(see bench/results/graph.json)", lo=0, hi=256)
+
+
+def native_bfloat16(device: str) -> bool:
+    """Whether ``device`` does bfloat16 convolutions natively: a CPU whose oneDNN has
+    AVX512-BF16 (or AMX). Elsewhere bfloat16 is emulated and slower than float32."""
+    if device != "cpu" or not torch.backends.mkldnn.is_available():
+        return False
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
+def compute_dtype(cfg: BackboneConfig) -> torch.dtype:
+    """The dtype ``cfg.precision`` resolves to on ``cfg.device`` (auto: bfloat16 only
+    where it is native, :func:`native_bfloat16`)."""
+    if cfg.precision == "float32" or (cfg.precision == "auto"
+                                      and not native_bfloat16(cfg.device)):
+        return torch.float32
+    if cfg.precision in ("auto", "bfloat16"):
+        return torch.bfloat16
+    raise ValueError(f"backbone precision must be auto, float32 or bfloat16, "
+                     f"got {cfg.precision!r}")
+
+
+def precision_name(backbone: "Backbone") -> str:
+    """'float32' or 'bfloat16': what a loaded backbone computes in (for logs and records)."""
+    return str(backbone.input_dtype).removeprefix("torch.")
 
 
 def check_rgbd(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -116,7 +148,8 @@ class Backbone:
 
     def __init__(self, net: torch.nn.Module, kind: str, channel_to_id: np.ndarray,
                  input_size: tuple[int, int], device: str, preprocess,
-                 channels_last: bool = False, feature_channels: int = 0) -> None:
+                 channels_last: bool = False, feature_channels: int = 0,
+                 input_dtype: torch.dtype = torch.float32) -> None:
         self.net = net.eval()
         self.kind = kind
         self.channel_to_id = np.asarray(channel_to_id, dtype=np.uint16)
@@ -128,6 +161,9 @@ class Backbone:
         # > 0: embed() appends this many channels of the net's penultimate feature map
         # (the net's ``forward_with_features``) after the logits.
         self.feature_channels = int(feature_channels)
+        # The dtype the net's first layers take (bfloat16 under backbone.precision);
+        # outputs are always returned as float32.
+        self.input_dtype = input_dtype
 
     def inputs(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
                ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -146,6 +182,7 @@ class Backbone:
         rgb_t = torch.from_numpy(np.stack(rgb_in)).permute(0, 3, 1, 2).float()
         depth_t = torch.from_numpy(np.stack(depth_in))[:, None]
         x_rgb, x_depth = self._preprocess(rgb_t.to(self.device), depth_t.to(self.device))
+        x_rgb, x_depth = x_rgb.to(self.input_dtype), x_depth.to(self.input_dtype)
         if self.channels_last:
             x_rgb = x_rgb.contiguous(memory_format=torch.channels_last)
             x_depth = x_depth.contiguous(memory_format=torch.channels_last)
@@ -195,6 +232,7 @@ class Backbone:
                 logits = self.net(x_rgb, x_depth)
             if isinstance(logits, (tuple, list)):  # some nets return side outputs
                 logits = logits[0]
+            logits = logits.float()
             out = []
             for i, (hh, ww) in enumerate(sizes):
                 li = logits[i: i + 1]
@@ -259,9 +297,12 @@ def _load_default(cfg: BackboneConfig) -> Backbone:
     # Same outputs to float rounding, 35-40 % less time on this CPU
     # (bench/results/backbone.json, default_unfolded_ms_320x240).
     net = small.fold_batch_norm(net).to(memory_format=torch.channels_last)
+    dtype = compute_dtype(cfg)
+    if dtype != torch.float32:  # after folding: the folded weights are rounded once
+        net = small.lower_precision(net, dtype)
     return Backbone(net, "default", classes.CHANNEL_TO_ID.copy(), _input_size(cfg), cfg.device,
                     small.prepare_inputs, channels_last=True,
-                    feature_channels=net.widths[0] if cfg.features else 0)
+                    feature_channels=net.widths[0] if cfg.features else 0, input_dtype=dtype)
 
 
 def esanet_channel_to_id(dataset: str) -> np.ndarray:
@@ -302,9 +343,10 @@ def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
     esanet_cfg = dataclasses.replace(cfg, kind="esanet")
     # NHWC for oneDNN's CPU convolutions: same outputs, 979 -> 757 ms at 480x640 on this
     # CPU (2 threads, random weights, interleaved runs at 1c87e47).
-    net = net.eval().to(memory_format=torch.channels_last)
+    dtype = compute_dtype(cfg)
+    net = net.eval().to(dtype=dtype, memory_format=torch.channels_last)
     return Backbone(net, "esanet", channel_to_id, _input_size(esanet_cfg), cfg.device,
-                    preprocess, channels_last=True)
+                    preprocess, channels_last=True, input_dtype=dtype)
 
 
 def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:

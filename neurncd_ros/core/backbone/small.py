@@ -207,9 +207,11 @@ class SmallRGBDNet(nn.Module):
     def _decoder_input(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
                        ) -> tuple[torch.Tensor, torch.Tensor]:
         """(input of the last decoder stage, its 1/2-resolution skip): what the known-class
-        head and the novelty branch both read."""
-        r = self.rgb_stem(x_rgb)
-        d = self.depth_stem(x_depth)
+        head and the novelty branch both read. Inputs are cast to the encoder's dtype
+        (bfloat16 after :func:`lower_precision`), so callers always pass float32."""
+        dtype = self.rgb_stem[0].weight.dtype
+        r = self.rgb_stem(x_rgb.to(dtype))
+        d = self.depth_stem(x_depth.to(dtype))
         r = self.fusions[0](r, d)
         skips = [r]
         for i, (rs, ds) in enumerate(zip(self.rgb_stages, self.depth_stages)):
@@ -222,8 +224,14 @@ class SmallRGBDNet(nn.Module):
         return x, skips[0]
 
     def _novelty(self, x: torch.Tensor, skip: torch.Tensor, size) -> torch.Tensor:
-        return F.interpolate(self.novelty_classifier(self.novelty_decoder(x, skip)), size=size,
-                             mode="bilinear", align_corners=False)
+        return F.interpolate(self._head(self.novelty_classifier, self.novelty_decoder(x, skip)),
+                             size=size, mode="bilinear", align_corners=False)
+
+    @staticmethod
+    def _head(classifier: nn.Conv2d, feats: torch.Tensor) -> torch.Tensor:
+        """A 1x1 classifier on features cast to its own dtype: the heads stay float32
+        under :func:`lower_precision`, so logits and entropies keep full precision."""
+        return classifier(feats.to(classifier.weight.dtype))
 
     def _temperature(self, x: torch.Tensor, skip: torch.Tensor, size) -> torch.Tensor:
         """(B, 1, H, W) novelty temperature at the input size for inference: computed from
@@ -231,7 +239,8 @@ class SmallRGBDNet(nn.Module):
         upsampled (bilinear, so it stays in [NOVELTY_FLOOR, 1]). Upsampling S logits and
         taking their entropy at full size instead cost about 7 of the net's 50 ms on
         this CPU and differ only along edges (bench/results/backbone.json)."""
-        t = novelty_temperature(self.novelty_classifier(self.novelty_decoder(x, skip)))
+        t = novelty_temperature(self._head(self.novelty_classifier,
+                                           self.novelty_decoder(x, skip)))
         return F.interpolate(t, size=size, mode="bilinear", align_corners=False)
 
     def novelty_raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
@@ -245,10 +254,11 @@ class SmallRGBDNet(nn.Module):
     def forward_with_features(self, x_rgb: torch.Tensor, x_depth: torch.Tensor
                               ) -> tuple[torch.Tensor, torch.Tensor]:
         """As :meth:`forward`, plus the penultimate feature map: the last decoder stage's
-        output (B, widths[0], H/2, W/2), what the known-class classifier reads."""
+        output (B, widths[0], H/2, W/2), what the known-class classifier reads. Both are
+        float32 whatever the encoder's dtype."""
         size = x_rgb.shape[-2:]
         x, skip = self._decoder_input(x_rgb, x_depth)
-        feats = self.decoder[-1](x, skip)
+        feats = self.decoder[-1](x, skip).to(self.classifier.weight.dtype)
         logits = F.interpolate(self.classifier(feats), size=size, mode="bilinear",
                                align_corners=False)
         if self.novelty_branch:
@@ -304,6 +314,31 @@ def fold_batch_norm(model: nn.Module) -> nn.Module:
     left = [n for n, m in model.named_modules() if isinstance(m, nn.BatchNorm2d)]
     if left:
         raise RuntimeError(f"batch norms without a convolution to fold into: {left}")
+    return model
+
+
+HEADS = ("classifier", "novelty_classifier")
+"""The 1x1 class heads, which :func:`lower_precision` leaves in float32."""
+
+
+def lower_precision(model: SmallRGBDNet, dtype: torch.dtype = torch.bfloat16) -> SmallRGBDNet:
+    """Run the encoder and decoder in ``dtype`` (bfloat16), in place, for inference.
+
+    Why: on a CPU with native bfloat16 arithmetic (AVX512-BF16) oneDNN's convolutions
+    run about 1.4x faster in bfloat16 than in float32 on this net, which is what
+    brings a 320x240 frame within the 40 ms budget (bench/results/backbone.json,
+    ``default_float32_ms_320x240``). The class heads stay float32 (:data:`HEADS`) and
+    read features cast up, so logits, softmax and entropy are computed in full
+    precision; only the features carry bfloat16 rounding (8 significant bits), which
+    moves a pixel's argmax on a fraction of a percent of pixels, at class borders
+    (``test_float32_*`` against ``test_*`` in the same file). Inputs stay float32: the
+    net casts them. Only for a net in eval mode; training stays float32.
+    """
+    if model.training:
+        raise ValueError("lower_precision is for inference: call model.eval() first")
+    for name, child in model.named_children():
+        if name not in HEADS:
+            child.to(dtype)
     return model
 
 
