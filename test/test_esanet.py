@@ -252,7 +252,29 @@ def _kinect_frame(real_data_dir):
 
 
 def _esanet(model, **cfg) -> B.Backbone:
-    return B.esanet_backbone(model, build(B.BackboneConfig, {"kind": "esanet", **cfg}))
+    """An ESANet backbone; float32 unless ``precision`` is given, so the preprocessing
+    tests compare the inputs at full precision."""
+    return B.esanet_backbone(model, build(B.BackboneConfig,
+                                          {"kind": "esanet", "precision": "float32", **cfg}))
+
+
+def test_bfloat16_esanet_runs_a_copy_and_returns_float32_logits(real_data_dir, model37):
+    """backbone.precision bfloat16 runs ESANet in bfloat16 (inputs included) on a copy:
+    the caller's model keeps its float32 weights, predict() returns float32 logits close
+    to the float32 run on a real Kinect frame (random weights, so the logits are compared,
+    not the labels)."""
+    rgb, depth = _kinect_frame(real_data_dir)
+    size = {"esanet_dataset": "sunrgbd", "input_width": 320, "input_height": 256}
+    low = _esanet(model37, precision="bfloat16", **size)
+    assert low.input_dtype == torch.bfloat16
+    assert all(p.dtype == torch.bfloat16 for p in low.net.parameters())
+    assert all(p.dtype == torch.float32 for p in model37.parameters())
+    assert low.inputs([rgb], [depth])[0].dtype == torch.bfloat16
+    ours = low.predict(rgb, depth)
+    ref = _esanet(model37, **size).predict(rgb, depth)
+    assert ours.dtype == np.float32 and ours.shape == ref.shape == (*depth.shape, 37)
+    assert not np.array_equal(ours, ref)
+    assert np.abs(ours - ref).mean() < 0.05 * np.abs(ref).mean()
 
 
 def test_preprocess_real_kinect_frame(real_data_dir, model37):

@@ -331,7 +331,11 @@ def _load_esanet(cfg: BackboneConfig) -> Backbone:
 
 def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
     """Wrap an ESANet model in the Backbone interface with the public preprocessing of
-    ``cfg.esanet_dataset`` (depth unit and statistics) and ``cfg.esanet_depth_mode``."""
+    ``cfg.esanet_dataset`` (depth unit and statistics) and ``cfg.esanet_depth_mode``.
+
+    The net is put in eval mode and NHWC layout in place; when ``cfg.precision``
+    resolves to bfloat16 the backbone runs a bfloat16 copy, so the caller's net keeps
+    its float32 weights."""
     from . import esanet
 
     channel_to_id = esanet_channel_to_id(cfg.esanet_dataset)
@@ -344,7 +348,11 @@ def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
     # NHWC for oneDNN's CPU convolutions: same outputs, 979 -> 757 ms at 480x640 on this
     # CPU (2 threads, random weights, interleaved runs at 1c87e47).
     dtype = compute_dtype(cfg)
-    net = net.eval().to(dtype=dtype, memory_format=torch.channels_last)
+    net = net.eval().to(memory_format=torch.channels_last)
+    if dtype != torch.float32:
+        import copy
+
+        net = copy.deepcopy(net).to(dtype=dtype)
     return Backbone(net, "esanet", channel_to_id, _input_size(esanet_cfg), cfg.device,
                     preprocess, channels_last=True, input_dtype=dtype)
 
