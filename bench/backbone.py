@@ -276,7 +276,7 @@ def main() -> int:
     float32 = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
                                                   precision="float32"))
                if backbone.input_dtype != torch.float32 else None)
-    res["default_precision"] = bb.precision_name(backbone)
+    res["default_precision"] = backbone.precision
     res.update(default_speed(backbone, runs))
     res.update(interleaved_speed(backbone, plain, float32, 60 if args.quick else 300))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)

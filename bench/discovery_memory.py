@@ -69,9 +69,8 @@ class ClusteringTimer:
         mcl.mcl = self._mcl
 
 
-def run(frames: int, seed: int) -> list[dict]:
+def run(cfg: config.Config, frames: int, seed: int) -> list[dict]:
     """One labelled frame per second of a walk of ``seed``: per-frame timings."""
-    cfg = config.load(None, {})
     backbone = load_backbone(cfg.backbone)
     disc = labeller.Discoverer(cfg.discovery, classes.CHANNEL_TO_ID, mcl_cfg=cfg.mcl,
                                seg_cfg=cfg.segmentation, mod_cfg=cfg.modulation,
@@ -130,8 +129,9 @@ def main() -> int:
     args = ap.parse_args()
     torch.set_num_threads(1)
     seed = seeds.TUNE[0]
-    rows = run(args.frames, seed)
-    res = summarise(rows, config.load(None, {}).discovery.memory_size)
+    cfg = config.load(None, {})
+    rows = run(cfg, args.frames, seed)
+    res = summarise(rows, cfg.discovery.memory_size)
     res.update({"seed": seed, "threads": 1, "commit": commit()})
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "discovery_memory.json").write_text(json.dumps(res, indent=1) + "\n")

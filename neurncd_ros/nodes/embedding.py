@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from ..core import msgconv
 # before rclpy: scipy/torch load first
-from ..core.backbone.backbone import load_backbone, precision_name, threshold_warning
+from ..core.backbone.backbone import load_backbone, threshold_warning
 from ..core.engine.embedding import EmbeddingStage
 from ..core.engine.health import Health
 from ..core.engine.worker import Worker
@@ -45,7 +45,7 @@ def make_node():
             self.get_logger().info(f"backbone {spec.backbone}: {spec.logit_channels} logit + "
                                    f"{spec.feature_channels} feature channels, novelty branch "
                                    f"{'on' if self.stage.backbone.novelty_branch else 'off'}, "
-                                   f"{precision_name(self.stage.backbone)} convolutions")
+                                   f"{self.stage.backbone.precision} convolutions")
             advice = threshold_warning(self.stage.backbone, self.cfg.discovery.entropy_threshold)
             if advice:
                 self.get_logger().warn(advice)

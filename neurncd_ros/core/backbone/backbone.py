@@ -23,6 +23,7 @@ logits are resized back (bilinear) to H x W.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from pathlib import Path
 from typing import Sequence
@@ -113,11 +114,6 @@ def compute_dtype(cfg: BackboneConfig) -> torch.dtype:
                      f"got {cfg.precision!r}")
 
 
-def precision_name(backbone: "Backbone") -> str:
-    """'float32' or 'bfloat16': what a loaded backbone computes in (for logs and records)."""
-    return str(backbone.input_dtype).removeprefix("torch.")
-
-
 def check_rgbd(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Validate one RGB-D pair; return depth with NaN/inf replaced by 0 (hole)."""
     if not isinstance(rgb, np.ndarray) or not isinstance(depth, np.ndarray):
@@ -187,6 +183,12 @@ class Backbone:
             x_rgb = x_rgb.contiguous(memory_format=torch.channels_last)
             x_depth = x_depth.contiguous(memory_format=torch.channels_last)
         return x_rgb, x_depth
+
+    @property
+    def precision(self) -> str:
+        """'float32' or 'bfloat16': what the net computes in (``backbone.precision``
+        resolved), for logs and records."""
+        return str(self.input_dtype).removeprefix("torch.")
 
     @property
     def novelty_branch(self) -> bool:
@@ -350,8 +352,6 @@ def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
     dtype = compute_dtype(cfg)
     net = net.eval().to(memory_format=torch.channels_last)
     if dtype != torch.float32:
-        import copy
-
         net = copy.deepcopy(net).to(dtype=dtype)
     return Backbone(net, "esanet", channel_to_id, _input_size(esanet_cfg), cfg.device,
                     preprocess, channels_last=True, input_dtype=dtype)
