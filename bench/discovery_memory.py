@@ -1,22 +1,30 @@
-"""Discovery over a long stream: time per labelled frame as the segment memory fills.
+"""Discovery over a long stream: time per labelled frame as the segment memory fills, and
+what the labels are worth there.
 
-Discovery re-clusters its whole segment memory (Markov clustering) for every labelled
-frame, so its time per frame grows with the memory until ``discovery.memory_size``
-caps it. The other benches' scenes (150-300 frames, 23-47 labelled) stay below about
-1000 segments and never show this; a user's long bag does.
+Discovery re-clusters its segment memory (Markov clustering), so its time per frame
+grows with the memory until ``discovery.memory_size`` caps it; beyond
+``discovery.recluster_segments`` segments it re-clusters less often to stay near that
+cost. The other benches' scenes (150-300 frames, 23-47 labelled) stay below about 1000
+segments and never show this; a user's long bag does.
 
 A walk of tuning seed 500 (seeds.TUNE[0]) with one frame per second of stream, every
 frame labelled (about the keyframe rate of the live graph), the default backbone's
-embeddings and entropy (no field: this times discovery alone), one torch thread, the
-default configuration. Per frame: ``Discoverer.process`` wall time, the memory's size
-and the time inside Markov clustering.
+embeddings and entropy (no field: this measures discovery alone), one torch thread.
+The walk and its embeddings are computed once; each configuration then runs a fresh
+Discoverer over it. Per frame: ``Discoverer.process`` wall time, the memory's size,
+the time inside Markov clustering; per run: mIoU (all / known / novel, Hungarian-matched
+as in bench/ncd.py) and novel-id stability, over the whole walk and over the frames at
+the memory cap.
 
-Figures (bench/results/discovery_memory.json; times in ms, medians over windows of
-25 frames): ``windows`` (first frame, memory segments, process ms, clustering ms),
-``process_ms_at_cap`` / ``mcl_ms_at_cap`` (median over the frames at the cap),
-``frames_to_cap``, ``memory_size``; discovery_memory.png plots them.
+Figures (bench/results/discovery_memory.json; times in ms, medians): per run
+(``runs``, the first the default configuration) ``windows`` (first frame, memory
+segments, process ms, clustering ms, over windows of 25 frames),
+``process_ms_at_cap`` / ``mcl_ms_at_cap`` / ``process_ms_mean_at_cap`` (what sets the
+throughput), ``frames_to_cap``, ``quality`` and ``quality_at_cap``;
+discovery_memory.png plots the time per frame of every run.
 
-    .venv/bin/python bench/discovery_memory.py              # 300 frames (~8 min)
+    .venv/bin/python bench/discovery_memory.py              # 300 frames, default (~4 min)
+    .venv/bin/python bench/discovery_memory.py --sweep discovery.recluster_segments=0,1000
     .venv/bin/python bench/discovery_memory.py --frames 60  # smoke
 """
 
@@ -39,6 +47,7 @@ from neurncd_ros import config, synth  # noqa: E402
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.backbone.backbone import load_backbone  # noqa: E402
 from neurncd_ros.core.discovery import labeller, mcl  # noqa: E402
+from neurncd_ros.core.discovery.metrics import Evaluator, IdStability  # noqa: E402
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
@@ -69,24 +78,51 @@ class ClusteringTimer:
         mcl.mcl = self._mcl
 
 
-def run(cfg: config.Config, frames: int, seed: int) -> list[dict]:
-    """One labelled frame per second of a walk of ``seed``: per-frame timings."""
+def walk(cfg: config.Config, frames: int, seed: int) -> list[tuple]:
+    """The walk's frames, each with the backbone's embedding and entropy."""
     backbone = load_backbone(cfg.backbone)
+    out = []
+    for fr in tqdm(synth.generate(seed, frames, synth.SynthConfig(fps=1.0)), total=frames,
+                   desc="walk and embeddings", unit="frame"):
+        emb = backbone.embed(fr.rgb, fr.depth)
+        out.append((fr, emb, entropy(emb)))
+    return out
+
+
+def _quality(ev: Evaluator, stable: IdStability) -> dict:
+    r = ev.result()
+    out = {k: r[k] for k in ("miou_all", "miou_known", "miou_novel")}
+    s = stable.result()
+    out.update(novel_id_stability=s["novel_id_stability"],
+               novel_id_stability_found=s["novel_id_stability_found"])
+    return out
+
+
+def run(cfg: config.Config, frames: list[tuple]) -> tuple[list[dict], dict, dict]:
+    """A fresh Discoverer over the walk: per-frame timings, quality over the walk and
+    quality over the frames at the memory cap."""
     disc = labeller.Discoverer(cfg.discovery, classes.CHANNEL_TO_ID, mcl_cfg=cfg.mcl,
                                seg_cfg=cfg.segmentation, mod_cfg=cfg.modulation,
                                fusion_cfg=cfg.label_fusion)
     rows = []
+    ev, stable = Evaluator(), IdStability()
+    ev_cap, stable_cap = Evaluator(), IdStability()
     with ClusteringTimer() as clock:
-        walk = synth.generate(seed, frames, synth.SynthConfig(fps=1.0))
-        for i, fr in enumerate(tqdm(walk, total=frames, desc="labelled frames", unit="frame")):
-            emb = backbone.embed(fr.rgb, fr.depth)
-            ent = entropy(emb)
+        for i, (fr, emb, ent) in enumerate(tqdm(frames, desc="labelled frames",
+                                                unit="frame")):
             clock.ms = 0.0
             t = time.perf_counter()
-            disc.process(fr.depth, fr.intrinsics, emb, ent, fr.stamp_ns, fr.rgb, None, fr.pose)
+            lab = disc.process(fr.depth, fr.intrinsics, emb, ent, fr.stamp_ns, fr.rgb, None,
+                               fr.pose)
             rows.append({"frame": i, "process_ms": (time.perf_counter() - t) * 1000,
                          "mcl_ms": clock.ms, "memory": disc.memory_len})
-    return rows
+            ev.update(lab, fr.semantic)
+            stable.update(lab, fr.semantic, fr.instance)
+            if disc.memory_len >= cfg.discovery.memory_size:
+                ev_cap.update(lab, fr.semantic)
+                stable_cap.update(lab, fr.semantic, fr.instance)
+    at_cap = any(r["memory"] >= cfg.discovery.memory_size for r in rows)
+    return rows, _quality(ev, stable), _quality(ev_cap, stable_cap) if at_cap else {}
 
 
 def summarise(rows: list[dict], memory_size: int) -> dict:
@@ -97,27 +133,31 @@ def summarise(rows: list[dict], memory_size: int) -> dict:
                         "process_ms": statistics.median(r["process_ms"] for r in w),
                         "mcl_ms": statistics.median(r["mcl_ms"] for r in w)})
     at_cap = [r for r in rows if r["memory"] >= memory_size]
-    out = {"windows": windows, "memory_size": memory_size, "frames": len(rows),
-           "frames_to_cap": at_cap[0]["frame"] if at_cap else None,
-           "process_ms_at_cap": statistics.median(r["process_ms"] for r in at_cap)
-           if at_cap else None,
-           "mcl_ms_at_cap": statistics.median(r["mcl_ms"] for r in at_cap) if at_cap else None}
-    return out
+
+    def med(key):
+        return statistics.median(r[key] for r in at_cap) if at_cap else None
+    return {"windows": windows, "memory_size": memory_size, "frames": len(rows),
+            "frames_to_cap": at_cap[0]["frame"] if at_cap else None,
+            "process_ms_at_cap": med("process_ms"), "mcl_ms_at_cap": med("mcl_ms"),
+            "process_ms_mean_at_cap": statistics.fmean(r["process_ms"] for r in at_cap)
+            if at_cap else None}
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(runs: list[dict], path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mem = [r["memory"] for r in rows]
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot(mem, [r["process_ms"] for r in rows], ".", ms=3, label="Discoverer.process")
-    ax.plot(mem, [r["mcl_ms"] for r in rows], ".", ms=3, label="of it, Markov clustering")
-    ax.set_xlabel("segments in the memory")
+    for r in runs:
+        name = r["name"]
+        ax.plot([x["frame"] for x in r["rows"]], [x["process_ms"] for x in r["rows"]], ".",
+                ms=3, label=f"{name}: Discoverer.process")
+    ax.set_xlabel("labelled frame (one per second of stream)")
     ax.set_ylabel("ms per labelled frame (1 thread)")
+    ax.set_yscale("log")
     ax.set_title("discovery time as the segment memory fills")
-    ax.legend()
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -126,22 +166,57 @@ def plot(rows: list[dict], path: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="labelled frames (1 per second)")
+    ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
+                    help="also run these values of one parameter (the default first)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     seed = seeds.TUNE[0]
-    cfg = config.load(None, {})
-    rows = run(cfg, args.frames, seed)
-    res = summarise(rows, cfg.discovery.memory_size)
-    res.update({"seed": seed, "threads": 1, "commit": commit()})
+    base = config.load(None, {})
+    variants = [("default", base, {})]
+    if args.sweep:
+        if "=" not in args.sweep:
+            raise SystemExit(f"--sweep {args.sweep!r}: expected SECTION.KEY=V1,V2,...")
+        key, raw = args.sweep.split("=", 1)
+        for v in raw.split(","):
+            over = config.parse_overrides([f"{key}={v}"])
+            try:
+                variants.append((f"{key}={v}", config.load(None, over), over))
+            except config.ConfigError as err:
+                raise SystemExit(f"--sweep {args.sweep!r}: {err}") from None
+    frames = walk(base, args.frames, seed)
+    runs = []
+    for name, cfg, over in variants:
+        rows, quality, quality_cap = run(cfg, frames)
+        res = summarise(rows, cfg.discovery.memory_size)
+        res.update(name=name, overrides=over, quality=quality, quality_at_cap=quality_cap,
+                   rows=rows)
+        runs.append(res)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "discovery_memory.json").write_text(json.dumps(res, indent=1) + "\n")
-    plot(rows, RESULTS / "discovery_memory.png")
-    print(f"{'frames':>8} {'memory':>8} {'process ms':>11} {'mcl ms':>8}")
-    for w in res["windows"]:
-        print(f"{w['first_frame']:>8} {w['memory']:>8} {w['process_ms']:>11.0f} "
-              f"{w['mcl_ms']:>8.0f}")
-    print(f"at the cap ({res['memory_size']} segments, from frame {res['frames_to_cap']}): "
-          f"process {res['process_ms_at_cap']} ms, Markov clustering {res['mcl_ms_at_cap']} ms")
+    plot(runs, RESULTS / "discovery_memory.png")
+    for r in runs:
+        del r["rows"]
+    out = {"runs": runs, "seed": seed, "threads": 1, "frames": args.frames,
+           "commit": commit()}
+    (RESULTS / "discovery_memory.json").write_text(json.dumps(out, indent=1) + "\n")
+    for r in runs:
+        print(f"\n{r['name']}")
+        print(f"{'frames':>8} {'memory':>8} {'process ms':>11} {'mcl ms':>8}")
+        for w in r["windows"]:
+            print(f"{w['first_frame']:>8} {w['memory']:>8} {w['process_ms']:>11.0f} "
+                  f"{w['mcl_ms']:>8.0f}")
+        if r["frames_to_cap"] is not None:
+            print(f"at the cap ({r['memory_size']} segments, from frame {r['frames_to_cap']}): "
+                  f"process median {r['process_ms_at_cap']:.0f} ms, mean "
+                  f"{r['process_ms_mean_at_cap']:.0f} ms; Markov clustering median "
+                  f"{r['mcl_ms_at_cap']:.0f} ms")
+    print(f"\n{'run':<40} {'all':>6} {'known':>6} {'novel':>6} {'stab':>6}   at the cap: "
+          f"{'all':>6} {'novel':>6} {'stab':>6}")
+    for r in runs:
+        q, c = r["quality"], r["quality_at_cap"]
+        cap = (f"{c['miou_all']:>6.1f} {c['miou_novel']:>6.1f} "
+               f"{c['novel_id_stability']:>6.3f}" if c else "")
+        print(f"{r['name']:<40} {q['miou_all']:>6.1f} {q['miou_known']:>6.1f} "
+              f"{q['miou_novel']:>6.1f} {q['novel_id_stability']:>6.3f}   {'':>11}{cap}")
     print(f"wrote {RESULTS / 'discovery_memory.json'} and discovery_memory.png")
     return 0
 

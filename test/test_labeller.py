@@ -200,7 +200,40 @@ def test_recluster_period_assigns_between_reclusterings():
     assert _label_of(lab1, kinds, "floor") == (CLASS_ID["floor"], 1.0)
 
 
+def test_large_memory_reclusters_less_often(monkeypatch):
+    from neurncd_ros.core.discovery import labeller
+
+    calls = []
+    real = labeller.markov_cluster
+
+    def counted(desc, cfg):
+        calls.append(len(desc))
+        return real(desc, cfg)
+
+    monkeypatch.setattr(labeller, "markov_cluster", counted)
+    d = _discoverer(recluster_segments=20)  # 7 segments per frame
+    a = None
+    for frame in range(6):
+        seg, emb, ent, kinds = _frame(LAYOUT if frame % 2 == 0 else LAYOUT[::-1], frame)
+        lab = d.process_segments(seg, emb, ent)
+        # Re-clustered or not, every frame is labelled and the novel id is kept.
+        assert _label_of(lab, kinds, "floor") == (CLASS_ID["floor"], 1.0)
+        a = a or _label_of(lab, kinds, "A")[0]
+        assert a >= NOVEL_ID_START and _label_of(lab, kinds, "A") == (a, 1.0)
+    # Memory before frames 0..5: 0, 7, 14, 21, 28, 35 segments, so a re-clustering
+    # every 1, 1, 1, ceil(1.05^2) = 2, ceil(1.4^2) = 2, ceil(1.75^2) = 4 frames:
+    # at frames 0, 1, 2 and 4 (with 7, 14, 21 and 35 segments).
+    assert calls == [7, 14, 21, 35]
+    assert d.memory_len == 42 and d.recluster_every() == 5  # ceil(2.1^2)
+    off = _discoverer(recluster_segments=0)
+    for frame in range(6):
+        seg, emb, ent, _ = _frame(LAYOUT, frame)
+        off.process_segments(seg, emb, ent)
+    assert len(calls) == 4 + 6 and off.recluster_every() == 1
+
+
 def test_memory_is_bounded_and_keeps_recent_frames():
+
     d = _discoverer(memory_size=20, recent_frames=2)
     for frame in range(8):
         seg, emb, ent, _ = _frame(LAYOUT, frame)

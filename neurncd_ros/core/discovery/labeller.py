@@ -10,7 +10,12 @@ Per processed frame (:meth:`Discoverer.process`):
    keeps a thinning sample of the whole history;
 3. every ``recluster_period`` frames the memory is re-clustered with Markov
    clustering (:mod:`mcl`); in between, the new segments join the cluster with
-   the most similar (cosine) pixel-weighted mean descriptor;
+   the most similar (cosine) pixel-weighted mean descriptor. Markov clustering's
+   time grows about with the square of the memory (86 ms at 500 segments, 1.6 s
+   at 3000 on one thread, bench/results/discovery_memory.json), so beyond
+   ``recluster_segments`` segments the period is stretched by
+   ceil((segments / recluster_segments)^2): on a long run discovery keeps up
+   with the keyframes instead of falling further behind;
 4. each cluster is named from its members' pooled statistics: if the members'
    pixel-weighted mean entropy is below ``entropy_threshold`` * log(S) and the
    majority embedding-argmax channel holds at least ``majority_share`` of their
@@ -94,6 +99,7 @@ naming and the stable ids all read and update the one state of a
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import cv2
 import numpy as np
@@ -119,6 +125,13 @@ class DiscoveryConfig:
                                lo=1, hi=10000)
     recluster_period: int = param(1, "re-cluster the memory every this many frames", lo=1,
                                   hi=10000)
+    recluster_segments: int = param(1000, "with more segments than this in the memory, "
+                                    "re-cluster only every ceil((segments / this)^2) x "
+                                    "recluster_period frames (Markov clustering's time grows "
+                                    "about with the square of the memory, so its cost per "
+                                    "frame stays near what it is at this size; new segments "
+                                    "join the nearest cluster in between; 0 = off)",
+                                    lo=0, hi=100000)
     entropy_threshold: float = param(0.6, "known if mean entropy / log(S) is below this",
                                      lo=0.0, hi=1.0)
     majority_share: float = param(0.5, "known if the majority argmax channel holds this share "
@@ -227,6 +240,7 @@ class Discoverer:
         """Forget every segment and novel id (ids restart at NOVEL_ID_START)."""
         self._mem: _Memory | None = None
         self._frames = 0
+        self._last_recluster = -(10 ** 9)  # the first frame re-clusters
         self._next_uid = 0
         self._next_novel = NOVEL_ID_START
         self._novel_members: dict[int, np.ndarray] = {}  # novel id -> member uids
@@ -239,6 +253,14 @@ class Discoverer:
     @property
     def memory_len(self) -> int:
         return 0 if self._mem is None else len(self._mem)
+
+    def recluster_every(self) -> int:
+        """Frames between two re-clusterings at the memory's present size
+        (``recluster_period``, stretched by ``recluster_segments`` on a large memory)."""
+        every = self.cfg.recluster_period
+        if self.cfg.recluster_segments > 0 and self.memory_len > self.cfg.recluster_segments:
+            every *= math.ceil((self.memory_len / self.cfg.recluster_segments) ** 2)
+        return every
 
     # ------------------------------------------------------------ main entry
 
@@ -339,9 +361,10 @@ class Discoverer:
         new = new.take(np.flatnonzero(present))
         if self._mem is None:
             self._mem = _Memory.empty(desc.shape[1], self.S)
-        if self._frames % self.cfg.recluster_period == 0:
+        if self._frames - self._last_recluster >= self.recluster_every():
             self._mem = self._thin(self._mem.extend(new))
             self._recluster()
+            self._last_recluster = self._frames
         else:
             new.cluster = self._nearest_cluster(new)
             self._mem = self._thin(self._mem.extend(new))
