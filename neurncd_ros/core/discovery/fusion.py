@@ -17,8 +17,14 @@ is novel: fusing the known classes too blurs their boundaries at the voxel size.
 
 Chosen on the tuning seeds (bench/results/ncd_sweep_label_fusion_*.json):
 stability 0.904 -> 0.924 and all-class mIoU 74.1 -> 74.3 at 3 cm and decay 0.9;
-5 cm voxels over all classes lowered known mIoU by 0.5-0.7. It costs discovery
-about 28 ms per 320x240 frame (a profile over a 270k-voxel map).
+5 cm voxels over all classes lowered known mIoU by 0.5-0.7. The decay was raised
+to 0.99 later, on tuning seeds 500-509 with the bfloat16 backbone
+(bench/results/ncd_sweep_label_fusion_decay_precision-bfloat16.json): 0.9 / 0.95 /
+0.98 / 0.99 give novel-id stability 0.895 / 0.897 / 0.899 / 0.900 for all-class mIoU
+75.19 / 75.13 / 75.08 / 75.06 (novel 52.44 -> 52.07, known 84.33 -> 84.34): a voxel
+keeps the label most of its observations gave, and a window whose segment merged into
+the wall for the rest of a walk stays novel where its voxels were seen before. It
+costs discovery about 28 ms per 320x240 frame (a profile over a 270k-voxel map).
 
 Novel ids that discovery retires (merged into another id, or no longer live)
 lose their votes: :meth:`LabelFusion.update` takes the live novel ids, so the
@@ -65,8 +71,9 @@ class LabelFusionConfig:
                           "over the frames seen so far (needs the view's pose; off, or no "
                           "pose, labels each frame on its own)")
     voxel_size: float = param(0.03, "edge of a fusion voxel", lo=0.005, hi=1.0, unit="m")
-    decay: float = param(0.9, "each new observation of a voxel scales its older votes by "
-                         "this (0 = no memory)", lo=0.0, hi=0.999)
+    decay: float = param(0.99, "each new observation of a voxel scales its older votes by "
+                         "this (0 = no memory; near 1, the majority of everything the "
+                         "voxel was called)", lo=0.0, hi=0.999)
     novel_only: bool = param(True, "the map changes a pixel's label only where the frame's "
                              "label or the map's is novel (known-to-known changes are left "
                              "to the frame: the map's voxels blur the known classes' "
