@@ -20,12 +20,13 @@ def _wall_pose(x: float) -> np.ndarray:
     return look_at(np.array([x, 0.0, 0.0]), np.array([x, 1.0, 0.0]))
 
 
-def _plane_depth(pose: np.ndarray) -> np.ndarray:
-    """Depth of the plane y = 1 seen from ``pose`` (z-depth along the optical axis)."""
+def _plane_depth(pose: np.ndarray, plane_y: float = 1.0) -> np.ndarray:
+    """Depth of the plane y = ``plane_y`` seen from ``pose`` (z-depth along the optical
+    axis)."""
     v, u = np.mgrid[0:H, 0:W]
     d = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones((H, W))], -1)
     dw = d @ pose[:3, :3].T
-    return ((1.0 - pose[1, 3]) / dw[..., 1]).astype(np.float32)
+    return ((plane_y - pose[1, 3]) / dw[..., 1]).astype(np.float32)
 
 
 def _world_x(pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -236,3 +237,35 @@ def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
     # Where a novel id only touches another's surface (under the share), it keeps its id.
     _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.95))
     assert (outs[-1][new_part] == other).all()
+
+
+@pytest.mark.parametrize("coarse", [0.15, 0.0])
+def test_fresh_voxels_take_their_neighbourhoods_novel_label(coarse):
+    """The same picture measured 5 cm closer (depth noise, a new viewpoint) falls on new
+    3 cm voxels; the frame calls it wall. With the coarse map its first observations keep
+    the picture's id; then the fine voxels' own votes decide. Without it, wall at once."""
+    fus = LabelFusion(LabelFusionConfig(voxel_size=0.03, coarse_voxel_size=coarse,
+                                        fresh_observations=1))
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    lab, pic = _labels_with_picture(pose, depth)
+    for _ in range(5):
+        fus.update(lab, depth, INTR, pose, {NOVEL})
+    near = _plane_depth(pose, 0.95)
+    _, pic_near = _labels_with_picture(pose, near)
+    wall_only = np.full((H, W), WALL, np.uint16)
+    for frame in range(3):
+        out = fus.update(wall_only, near, INTR, pose, {NOVEL})
+        if coarse and frame < 2:  # observed at most fresh_observations times before
+            assert (out[pic_near] == NOVEL).mean() > 0.9
+            # Wall pixels away from the picture stay wall (its coarse voxels' edge aside).
+            x = _world_x(pose, near)
+            assert (out[np.abs(x) > 0.3 + coarse] == WALL).all()
+        else:
+            assert (out == WALL).all()
+    # Known labels never come from the coarse map: a fresh surface the frame calls
+    # chair stays chair although the coarse voxels around it say wall.
+    far = _plane_depth(pose, 1.05)
+    out = fus.update(np.full((H, W), CHAIR, np.uint16), far, INTR, pose, {NOVEL})
+    _, pic_far = _labels_with_picture(pose, far)
+    assert (out[~pic_far] == CHAIR).all()

@@ -26,6 +26,23 @@ keeps the label most of its observations gave, and a window whose segment merged
 the wall for the rest of a walk stays novel where its voxels were seen before. It
 costs discovery about 28 ms per 320x240 frame (a profile over a 270k-voxel map).
 
+Fresh voxels (``coarse_voxel_size``): the same surface seen from a new viewpoint,
+or through new depth noise, lands on 3 cm voxels the map has not seen, and those
+take the frame's label: a window whose segment merged into the wall for the rest
+of a walk is called wall on all its new voxels, although the voxels beside them
+say novel. A second, coarse map (15 cm) takes the same votes (aliases applied);
+a pixel whose fine voxel was observed at most ``fresh_observations`` times before
+the frame takes the coarse voxel's label where that is novel. Known labels never
+come from it, and once a voxel has been observed more often its own votes decide.
+Chosen on tuning seeds 500-509 with the bfloat16 backbone
+(bench/results/ncd_sweep_label_fusion_coarse_voxel_size_precision-bfloat16.json):
+off / 0.09 / 0.15 / 0.2 m give novel-id stability 0.900 / 0.903 / 0.906 / 0.906
+for all-class mIoU 75.06 / 75.14 / 75.14 / 75.07 (novel 52.07 / 52.16 / 52.10 /
+51.88); fresh_observations 0 / 1 / 2 gave 0.902 / 0.905 / 0.907 at 0.15 m with
+novel mIoU 52.06 / 52.08 / 51.99 (a throw-away prototype of the same rule, its
+coarse map voting the labels before the aliases). It adds a second map update to
+each labelled frame (fewer voxels than the fine map's).
+
 Novel ids that discovery retires (merged into another id, or no longer live)
 lose their votes: :meth:`LabelFusion.update` takes the live novel ids, so the
 map never brings back an id discovery no longer publishes.
@@ -83,6 +100,14 @@ class LabelFusionConfig:
                                "that id from then on (one object Markov clustering split "
                                "into two ids seen from two viewpoints; 0 = off)",
                                lo=0.0, hi=1.0)
+    coarse_voxel_size: float = param(0.15, "a pixel on a voxel the map has observed at most "
+                                     "fresh_observations times takes, where it is novel, the "
+                                     "label of the coarse voxel of this edge around it (a "
+                                     "surface seen from a new viewpoint, or through new depth "
+                                     "noise, falls on new voxels but keeps its neighbourhood's "
+                                     "label; 0 = off)", lo=0.0, hi=2.0, unit="m")
+    fresh_observations: int = param(1, "coarse_voxel_size: voxels observed at most this many "
+                                    "times before the frame count as fresh", lo=0, hi=1000)
     max_voxels: int = param(500_000, "voxels kept (about 450 m2 of surface at 3 cm; "
                             "beyond, the least recently observed are dropped)", lo=1000,
                             hi=10**8)
@@ -93,6 +118,10 @@ class LabelFusion:
 
     def __init__(self, cfg: LabelFusionConfig = LabelFusionConfig()) -> None:
         self.cfg = cfg
+        # The coarse map votes with the labels this one publishes (aliases applied).
+        self._coarse = (LabelFusion(dataclasses.replace(
+            cfg, voxel_size=cfg.coarse_voxel_size, coarse_voxel_size=0.0, alias_share=0.0))
+            if cfg.coarse_voxel_size > 0 else None)
         self.reset()
 
     def reset(self) -> None:
@@ -104,6 +133,8 @@ class LabelFusion:
         self._columns: dict[int, int] = {}     # label id -> column
         self._frame = 0
         self._alias: dict[int, int] = {}       # novel id -> the novel id it is published as
+        if self._coarse is not None:
+            self._coarse.reset()
 
     def __len__(self) -> int:
         return int(self._keys.size)
@@ -243,19 +274,29 @@ class LabelFusion:
         labels = np.asarray(labels)
         if labels.shape != np.shape(depth):
             raise ValueError(f"labels are {labels.shape} but depth is {np.shape(depth)}")
-        self._frame += 1
-        self._retire(live_novel)
         points, mask = backproject(depth, intrinsics, pose)
         out = labels.astype(np.uint16, copy=True)
+        vals = self._fuse(labels[mask].astype(np.int64), points, live_novel)
+        out[mask] = vals
+        return out
+
+    def _fuse(self, lab: np.ndarray, points: np.ndarray, live_novel: set[int] | None
+              ) -> np.ndarray:
+        """:meth:`update` on the frame's labels ``lab`` at its back-projected ``points``:
+        the fused labels of those points."""
+        self._frame += 1
+        self._retire(live_novel)
         if not points.size:
-            return out
-        lab = labels[mask].astype(np.int64)
+            return lab
         keys = self._pack(points)
         ukeys, inv = np.unique(keys, return_inverse=True)
         rows = self._rows_of(ukeys)
         if self.cfg.alias_share > 0:
             lab = self._aliased(lab, rows, inv)
-            out[mask] = lab
+        vals = lab.copy()
+        # How often each voxel was observed before this frame (its decayed vote mass).
+        seen_before = self._votes[rows].sum(1) if self._votes.shape[1] else \
+            np.zeros(rows.size, np.float32)
         voting = lab > 0
         if voting.any():
             present = np.bincount(lab[voting])  # label ids are small: no sort needed
@@ -276,11 +317,15 @@ class LabelFusion:
             self._seen[r] = self._frame
         if self._votes.shape[1]:
             fused = self._best_ids(rows)[inv]
-            vals = out[mask]
             keep = fused > 0
             if self.cfg.novel_only:
                 keep &= (fused >= NOVEL_ID_START) | (vals >= NOVEL_ID_START)
             vals[keep] = fused[keep]
-            out[mask] = vals
+        if self._coarse is not None:
+            live = None if live_novel is None else set(live_novel) | set(self._alias.values())
+            coarse = self._coarse._fuse(lab, points, live)
+            fresh = (seen_before < self.cfg.fresh_observations + 0.5)[inv]
+            take = fresh & (coarse >= NOVEL_ID_START) & (coarse != vals)
+            vals[take] = coarse[take]
         self._bound()
-        return out
+        return vals
