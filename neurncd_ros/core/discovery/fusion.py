@@ -31,17 +31,19 @@ or through new depth noise, lands on 3 cm voxels the map has not seen, and those
 take the frame's label: a window whose segment merged into the wall for the rest
 of a walk is called wall on all its new voxels, although the voxels beside them
 say novel. A second, coarse map (15 cm) takes the same votes (aliases applied);
-a pixel whose fine voxel was observed at most ``fresh_observations`` times before
+a pixel whose fine voxel was observed at most ``fresh_observations`` (3) times before
 the frame takes the coarse voxel's label where that is novel. Known labels never
 come from it, and once a voxel has been observed more often its own votes decide.
 Chosen on tuning seeds 500-509 with the bfloat16 backbone
 (bench/results/ncd_sweep_label_fusion_coarse_voxel_size_precision-bfloat16.json):
 off / 0.09 / 0.15 / 0.2 m give novel-id stability 0.900 / 0.903 / 0.906 / 0.906
 for all-class mIoU 75.06 / 75.14 / 75.14 / 75.07 (novel 52.07 / 52.16 / 52.10 /
-51.88); fresh_observations 0 / 1 / 2 gave 0.902 / 0.905 / 0.907 at 0.15 m with
-novel mIoU 52.06 / 52.08 / 51.99 (a throw-away prototype of the same rule, its
-coarse map voting the labels before the aliases). It adds a second map update to
-each labelled frame (fewer voxels than the fine map's).
+51.88) with fresh_observations 1; then fresh_observations 1 / 2 / 3 give 0.906 /
+0.908 / 0.909 for all-class mIoU 75.14 / 75.13 / 75.12 (novel 52.10 / 52.06 / 52.00;
+bench/results/ncd_sweep_label_fusion_fresh_observations_precision-bfloat16.json),
+and 3 is the default: a voxel's first four observations may take the coarse novel
+label. It adds a second map update to each labelled frame (fewer voxels than the
+fine map's).
 
 Novel ids that discovery retires (merged into another id, or no longer live)
 lose their votes: :meth:`LabelFusion.update` takes the live novel ids, so the
@@ -106,7 +108,7 @@ class LabelFusionConfig:
                                      "surface seen from a new viewpoint, or through new depth "
                                      "noise, falls on new voxels but keeps its neighbourhood's "
                                      "label; 0 = off)", lo=0.0, hi=2.0, unit="m")
-    fresh_observations: int = param(1, "coarse_voxel_size: voxels observed at most this many "
+    fresh_observations: int = param(3, "coarse_voxel_size: voxels observed at most this many "
                                     "times before the frame count as fresh", lo=0, hi=1000)
     max_voxels: int = param(500_000, "voxels kept (about 450 m2 of surface at 3 cm; "
                             "beyond, the least recently observed are dropped)", lo=1000,
