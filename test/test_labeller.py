@@ -233,7 +233,6 @@ def test_large_memory_reclusters_less_often(monkeypatch):
 
 
 def test_memory_is_bounded_and_keeps_recent_frames():
-
     d = _discoverer(memory_size=20, recent_frames=2)
     for frame in range(8):
         seg, emb, ent, _ = _frame(LAYOUT, frame)

@@ -296,9 +296,10 @@ class LabelFusion:
         if self.cfg.alias_share > 0:
             lab = self._aliased(lab, rows, inv)
         vals = lab.copy()
-        # How often each voxel was observed before this frame (its decayed vote mass).
-        seen_before = self._votes[rows].sum(1) if self._votes.shape[1] else \
-            np.zeros(rows.size, np.float32)
+        if self._coarse is not None:
+            # How often each voxel was observed before this frame (its decayed vote mass).
+            seen_before = self._votes[rows].sum(1) if self._votes.shape[1] else \
+                np.zeros(rows.size, np.float32)
         voting = lab > 0
         if voting.any():
             present = np.bincount(lab[voting])  # label ids are small: no sort needed

@@ -11,7 +11,7 @@ Per processed frame (:meth:`Discoverer.process`):
 3. every ``recluster_period`` frames the memory is re-clustered with Markov
    clustering (:mod:`mcl`); in between, the new segments join the cluster with
    the most similar (cosine) pixel-weighted mean descriptor. Markov clustering's
-   time grows about with the square of the memory (86 ms at 500 segments, 1.6 s
+   time grows about with the square of the memory (75 ms at 500 segments, 1.7-1.8 s
    at 3000 on one thread, bench/results/discovery_memory.json), so beyond
    ``recluster_segments`` segments the period is stretched by
    ceil((segments / recluster_segments)^2): on a long run discovery keeps up
