@@ -18,7 +18,11 @@ the report gives the mean over scenes. Rows of the report (percent):
 
 - ``neurncd``: the shipped defaults on the rendered embedding and entropy;
 - ``backbone_logits``: the same discovery on the backbone's per-frame logits
-  and their entropy (no Embedding-NeRF: what multi-view fusion buys);
+  and their entropy, segmented on the measured depth (no mapper stage: what the
+  multi-view mapper buys);
+- ``measured_depth``: the mapper stage's embedding and entropy segmented on the
+  measured depth instead of the view depth the mapper fuses from the keyframes'
+  (``mapper_node.depth_fusion`` off);
 - ``paper_mcl``: the paper's clustering (cosine affinity, inflation 12);
 - ``embedding_only`` / ``entropy_only``: the paper's modulation ablations;
 - ``no_colour_edges``: segmentation without the colour cue (geometry + embedding);
@@ -127,7 +131,7 @@ def _render_source_hash() -> str:
     return h.hexdigest()
 
 
-ROWS = ("rgb", "depth", "K", "embedding", "entropy", "logits", "semantic", "instance",
+ROWS = ("rgb", "depth", "view_depth", "K", "embedding", "entropy", "logits", "semantic", "instance",
         "stamp", "keyframe", "field_share", "iterations", "pose")
 
 
@@ -151,7 +155,8 @@ def scene(cfg: config.Config, seed: int, frames: int) -> dict[str, np.ndarray]:
         rendered = engine.seconds["rendering"]
         h, w = f.depth.shape
         rows["rgb"].append(f.rgb)
-        rows["depth"].append(f.depth)
+        rows["depth"].append(f.depth)  # measured
+        rows["view_depth"].append(v.view_depth)  # the mapper's, as discovery gets it
         rows["K"].append(f.intrinsics.K)
         rows["pose"].append(f.pose)
         rows["embedding"].append(resize_to(v.embedding, h, w).astype(np.float16))
@@ -220,10 +225,12 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
                    keep: list | None = None) -> tuple[dict, list[float]]:
     """Run a fresh Discoverer over one scene's labelled frames: (metrics, seconds per frame).
 
-    ``source``: "rendered" (the Embedding-NeRF's embedding and entropy), "logits"
-    (the backbone's per-frame logits and their entropy) or "argmax" (the backbone's
-    argmax, no discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy)
-    of a few frames for the picture.
+    ``source``: "rendered" (the mapper stage's view: the Embedding-NeRF's embedding and
+    entropy, segmented on the view's depth), "rendered_measured" (the same on the
+    measured depth), "logits" (the backbone's per-frame logits and their entropy, on
+    the measured depth: no mapper stage) or "argmax" (the backbone's argmax, no
+    discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy) of a few
+    frames for the picture.
     """
     ev, ev_known, stable = Evaluator(), Evaluator(), IdStability()
     c2i = classes.CHANNEL_TO_ID
@@ -235,7 +242,8 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
         intr = Intrinsics.from_matrix(sc["K"][i], w, h)
         logits = sc["logits"][i].astype(np.float32)
         feats = None
-        if source == "rendered":
+        depth = sc["view_depth"][i] if source == "rendered" else sc["depth"][i]
+        if source.startswith("rendered"):
             emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
             if emb.shape[-1] > len(c2i):  # backbone.features: the features follow
                 emb, feats = emb[..., : len(c2i)], emb[..., len(c2i):]
@@ -245,7 +253,7 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
         if source == "argmax":
             lab = c2i[logits.argmax(-1)].astype(np.uint16)
         else:
-            lab = d.process(sc["depth"][i], intr, emb, ent, int(sc["stamp"][i]),
+            lab = d.process(depth, intr, emb, ent, int(sc["stamp"][i]),
                             sc["rgb"][i], feats, sc["pose"][i])
         times.append(time.perf_counter() - t)
         ev.update(lab, sc["semantic"][i])
@@ -560,6 +568,8 @@ def main() -> None:
         "neurncd": (base, "rendered"),
         **({"tuned": (with_overrides(base, res["tune_best"]), "rendered")} if args.tune else {}),
         "backbone_logits": (base, "logits"),
+        **({"measured_depth": (base, "rendered_measured")} if base.mapper_node.depth_fusion
+           else {}),
         "paper_mcl": (with_overrides(base, {"mcl.affinity": "cosine", "mcl.inflation": 12.0}),
                       "rendered"),
         "embedding_only": (with_overrides(base, {"modulation.mode": "embedding"}), "rendered"),

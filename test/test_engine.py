@@ -190,6 +190,85 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     assert h((5 / 8, 3 / 8)) - h_views[0] > 0.03
 
 
+def _plane_depth(intr, pose, normal, offset):
+    """Exact z-depth of the plane normal . p = offset seen from a camera (camera-to-world)."""
+    from neurncd_ros.core.camera import camera_directions, pixel_grid
+
+    u, v = pixel_grid(intr.height, intr.width)
+    rays = camera_directions(intr, u, v) @ pose[:3, :3].T  # camera z = 1
+    t = (offset - normal @ pose[:3, 3]) / (rays @ normal)
+    return t.astype(np.float32)
+
+
+def test_depth_fusion_averages_what_the_keyframes_measured_of_each_point():
+    from types import SimpleNamespace
+
+    from neurncd_ros.core.camera import Intrinsics, look_at
+    from neurncd_ros.core.engine.views import fuse_depth
+
+    intr = Intrinsics.from_hfov(64, 48, 60.0)
+    normal = np.array([0.3, 0.1, 1.0]) / np.linalg.norm([0.3, 0.1, 1.0])  # a slanted wall
+    offset = 2.0
+    view_pose = look_at(np.zeros(3), np.array([0.0, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0]))
+    kf_poses = [look_at(np.array(e), np.array([0.1, 0.0, 2.0]), up=np.array([0.0, -1.0, 0.0]))
+                for e in ([0.15, 0, 0], [-0.15, 0, 0], [0, 0.12, 0.1], [0, -0.12, -0.1])]
+    truth = _plane_depth(intr, view_pose, normal, offset)
+    exact = [_plane_depth(intr, p, normal, offset) for p in kf_poses]
+    kfs = [SimpleNamespace(pose=p, intrinsics=intr, depth=d) for p, d in zip(kf_poses, exact)]
+
+    # Geometry: exact depths in, the view's exact depth out, up to each keyframe's pixel
+    # rounding on the slanted wall (its nearest pixel is up to half a pixel, 2 cm here,
+    # beside the point).
+    fused, n = fuse_depth(truth, intr, view_pose, kfs, 0.05)
+    assert n.max() == 5 and (n >= 3).mean() > 0.9
+    assert np.abs(fused - truth).mean() < 0.0015 and np.abs(fused - truth).max() < 0.01
+
+    # Noise: 1 cm per view, independent; five views shrink it about as 1 / sqrt(5).
+    rng = np.random.default_rng(0)
+    noisy = lambda d: (d + rng.normal(0.0, 0.01, d.shape)).astype(np.float32)  # noqa: E731
+    view = noisy(truth)
+    view[5, 7], view[9, 9] = 0.0, np.nan  # no measurement: stays none
+    noisy_kfs = [SimpleNamespace(pose=k.pose, intrinsics=intr, depth=noisy(k.depth))
+                 for k in kfs]
+    fused, n = fuse_depth(view, intr, view_pose, noisy_kfs, 0.05)
+    ok = np.isfinite(view) & (view > 0)
+    assert fused[5, 7] == 0.0 and fused[9, 9] == 0.0 and n[5, 7] == 0.0
+    rms = lambda d: float(np.sqrt(np.mean((d[ok] - truth[ok]) ** 2)))  # noqa: E731
+    assert rms(fused) < 0.6 * rms(view), (rms(fused), rms(view))
+
+    # Occlusion: a keyframe that measured something 1 m in front does not see the wall
+    # there, and is left out of those pixels' mean.
+    blocked = noisy_kfs[0].depth.copy()
+    blocked[:, :32] = 1.0
+    occluded = [SimpleNamespace(pose=kf_poses[0], intrinsics=intr, depth=blocked)]
+    fused, n = fuse_depth(truth, intr, view_pose, occluded, 0.05)
+    assert 0.3 < (n == 2).mean() < 0.7 and (n[ok] >= 1).all()
+    assert np.abs(fused - truth)[ok].max() < 0.05  # nothing pulled towards 1 m
+
+
+def test_mapper_stage_gives_discovery_the_fused_depth(cfg, backbone, frames):
+    """The view's depth is the measured one averaged with the keyframes': closer to the
+    exact depth of the synthetic room than the Kinect-like measurement itself."""
+    clean_cfg = synth.SynthConfig(width=96, height=72, depth_noise="none")
+    views = {}
+    for on in (True, False):
+        st = _stage(cfg, fallback="keyframes", render_scale=0.5, depth_fusion=on)
+        jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+        views[on] = st.render_view(jobs[-1])
+    f = jobs[-1].frame
+    off, fused = views[False], views[True]
+    assert off.depth is None and off.view_depth is f.depth
+    assert ViewInput.of(off).depth is f.depth and ViewInput.of(fused).depth is fused.depth
+    assert fused.depth.shape == f.depth.shape and fused.depth.dtype == np.float32
+    assert np.array_equal(fused.depth > 0, f.depth > 0)  # no hole filled, none made
+    assert np.array_equal(fused.embedding, off.embedding)  # only the depth changes
+    index = frames.index(f)
+    exact = next(synth.frames_at(1002, [index], clean_cfg)).depth
+    ok = (f.depth > 0) & (exact > 0)
+    err = lambda d: float(np.mean(np.abs(d[ok] - exact[ok])))  # noqa: E731
+    assert err(fused.depth) < 0.85 * err(f.depth), (err(fused.depth), err(f.depth))
+
+
 def test_disagreement_weight_adds_the_views_disagreement_to_the_entropy(cfg, backbone, frames):
     plain = _stage(cfg, fallback="keyframes", render_scale=0.5)
     extra = _stage(cfg, fallback="keyframes", render_scale=0.5, disagreement_weight=3.0)

@@ -220,7 +220,8 @@ def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
 
     # Two ids side by side in one frame are two objects to discovery: the right one lies
     # mostly (2/3) on surface the map gives the left one, and still keeps its id.
-    fus = LabelFusion(LabelFusionConfig(alias_share=0.4))
+    # (touch_share off: this is the map's rule alone; the touching rule is tested below.)
+    fus = LabelFusion(LabelFusionConfig(alias_share=0.4, touch_share=0.0))
     a = _wall_pose(-0.4)
     da = _plane_depth(a)
     lab_a, _ = _labels_with_picture(a, da, -0.9, 0.9)
@@ -269,3 +270,65 @@ def test_fresh_voxels_take_their_neighbourhoods_novel_label(coarse):
     out = fus.update(np.full((H, W), CHAIR, np.uint16), far, INTR, pose, {NOVEL})
     _, pic_far = _labels_with_picture(pose, far)
     assert (out[~pic_far] == CHAIR).all()
+
+
+def _world_z(pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World z (height) of every pixel."""
+    v, u = np.mgrid[0:H, 0:W]
+    cam = np.stack([(u - INTR.cx) / INTR.fx * depth, (v - INTR.cy) / INTR.fy * depth, depth], -1)
+    return (cam @ pose[:3, :3].T + pose[:3, 3])[..., 2]
+
+
+def test_touching_coplanar_novel_ids_are_one_object_and_others_stay_apart():
+    """A window's panes and frame, clustered apart (two novel ids), are published as one
+    id from the frame that shows them together; two pictures that touch at a corner, and
+    a window that meets the (novel) ceiling at a right angle, keep their own ids (the
+    coarse map is off: a fresh surface would take its neighbourhood's id from it)."""
+    other = NOVEL + 1
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x, z = _world_x(pose, depth), _world_z(pose, depth)
+
+    def labelled(first, second):
+        lab = np.full((H, W), WALL, np.uint16)
+        lab[first] = NOVEL
+        lab[second] = other
+        return lab
+
+    window = (np.abs(x) < 0.4) & (np.abs(z) < 0.3)
+    panes = (np.abs(x) < 0.3) & (np.abs(z) < 0.2)
+    for share, merged in ((0.2, True), (0.0, False)):
+        fus = LabelFusion(LabelFusionConfig(touch_share=share, coarse_voxel_size=0.0))
+        out = fus.update(labelled(window & ~panes, panes), depth, INTR, pose, {NOVEL, other})
+        if merged:  # the panes (the smaller region) are published as the frame's id
+            assert fus.aliases == {other: NOVEL} and not (out == other).any()
+            assert (out[panes] == NOVEL).mean() > 0.95
+            out = fus.update(labelled(window & ~panes, panes), depth, INTR, pose,
+                             {NOVEL, other})
+            assert not (out == other).any() and (out[panes] == NOVEL).mean() > 0.95
+        else:
+            assert fus.aliases == {} and (out[panes] == other).mean() > 0.9
+
+    # Two pictures side by side that touch along 5 cm of their outlines.
+    left = (x > -0.5) & (x <= 0.0) & (np.abs(z) < 0.3)
+    right = (x > 0.0) & (x < 0.5) & (z > 0.25) & (z < 0.5)
+    fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0))
+    out = fus.update(labelled(left, right), depth, INTR, pose, {NOVEL, other})
+    assert fus.aliases == {}
+    assert (out[right] == other).mean() > 0.8 and (out[left] == NOVEL).mean() > 0.8
+
+    # A window right under the ceiling: their border is a third of the window's outline
+    # and continuous in depth (the room's corner), but the planes are 90 degrees apart.
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones((H, W))], -1)
+    rays = rays @ pose[:3, :3].T
+    with np.errstate(divide="ignore"):
+        t_ceiling = np.where(rays[..., 2] > 0, 0.3 / rays[..., 2], np.inf)
+    corner = np.minimum(depth, t_ceiling).astype(np.float32)
+    ceiling = t_ceiling < depth
+    xc, zc = _world_x(pose, corner), _world_z(pose, corner)
+    under = ~ceiling & (np.abs(xc) < 0.3) & (zc > 0.0)
+    fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0))
+    out = fus.update(labelled(ceiling, under), corner, INTR, pose, {NOVEL, other})
+    assert fus.aliases == {}
+    assert (out[under] == other).mean() > 0.8 and (out[ceiling] == NOVEL).mean() > 0.8

@@ -31,8 +31,9 @@ class Topics:
                                     "rendered by the field, 32FC<C>, stamp of its frame")
     entropy: str = param("/neurncd/entropy", "a view's entropy of the rendered softmax, "
                          "32FC1")
-    view_depth: str = param("/neurncd/view/depth", "the measured depth of the rendered view "
-                            "(32FC1 m), published with it so discovery always has it")
+    view_depth: str = param("/neurncd/view/depth", "the depth of the rendered view (32FC1 "
+                            "m): measured, averaged with the keyframes' (mapper_node."
+                            "depth_fusion); published with it so discovery always has it")
     view_color: str = param("/neurncd/view/color", "the colour image of the rendered view, "
                             "rgb8")
     view_pose: str = param("/neurncd/view/pose", "camera-to-world pose of the rendered view "

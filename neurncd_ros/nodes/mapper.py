@@ -240,7 +240,8 @@ def make_node():
             stamp, f, fid = view.stamp_ns, view.frame, self.frame_id
             t = self.topics
             # Depth and colour first: discovery pairs the view once every piece arrived.
-            self.pub["depth"].publish(image_msg(f.depth, "32FC1", stamp, fid, t.view_depth))
+            self.pub["depth"].publish(image_msg(view.view_depth, "32FC1", stamp, fid,
+                                                t.view_depth))
             self.pub["color"].publish(image_msg(f.rgb, "rgb8", stamp, fid, t.view_color))
             self.pub_info.publish(camera_info_msg(f.intrinsics, stamp, fid))
             self.pub_view_pose.publish(pose_msg(f.pose, stamp, t.world_frame))

@@ -63,7 +63,7 @@ class ViewInput:
     @classmethod
     def of(cls, view: ViewRecord) -> "ViewInput":
         f = view.frame
-        return cls(f.stamp_ns, f.depth, f.intrinsics, view.embedding, view.entropy, f.rgb,
+        return cls(f.stamp_ns, view.view_depth, f.intrinsics, view.embedding, view.entropy, f.rgb,
                    view.keyframe, pose=f.pose)
 
 

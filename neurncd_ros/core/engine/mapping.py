@@ -30,6 +30,12 @@ field rarely matures within a short sequence, so this fusion is what the
 multi-view map contributes there (bench/results/ncd.json, rows
 ``fallback_backbone`` and ``backbone_logits``).
 
+The view's depth, which discovery cuts into convex segments, is the multi-view
+map's too (``depth_fusion``): the measured depth averaged, pixel by pixel, with what
+the nearest keyframes that see the same point measured of it (:func:`.views.fuse_depth`),
+at full size. The sensor's noise, independent between viewpoints, shrinks, and the
+small depth steps of a picture or a window frame on a wall stand out of it.
+
 Flow control: at most ``max_in_flight`` views are published and not yet
 labelled (the node sees labels come back on /neurncd/labels); the renderer
 waits instead of flooding a slower discovery, so latency stays bounded and
@@ -56,7 +62,7 @@ from ..params import param
 from ..sync import StampSync
 from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
-from .views import StoredView, coverage, fuse_keyframes, resize_to
+from .views import StoredView, coverage, fuse_depth, fuse_keyframes, resize_to
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,10 +110,16 @@ class MapperNodeConfig:
                                        "minus their mean entropy) to the view's entropy, so "
                                        "points the views call differently look more novel "
                                        "(0 = the predictive entropy alone)", lo=0.0, hi=100.0)
-    fusion_recent: int = param(0, "fallback keyframes: also fuse this many of the most "
-                               "recent frames that were not admitted as keyframes (their depth, "
-                               "pose and backbone embedding are held for it; 0 = keyframes only)",
+    fusion_recent: int = param(0, "fallback keyframes and depth_fusion: also fuse this "
+                               "many of the most recent frames that were not admitted as "
+                               "keyframes (their depth, pose and backbone embedding are held "
+                               "for it; 0 = keyframes only)",
                                lo=0, hi=256)
+    depth_fusion: bool = param(True, "publish as the view's depth its measured depth averaged "
+                               "with what the nearest keyframes (and recent frames) that see "
+                               "the same points measured of them, at full size: discovery's "
+                               "convex segments are cut on less sensor noise "
+                               "(bench/results/ncd.json, rows neurncd and measured_depth)")
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.05, "a keyframe sees a point if its depth "
@@ -310,7 +322,8 @@ class MapperStage:
                 if self._latest is not None:
                     self.health.count("skipped_newer")
                 self._latest = job
-                if self.cfg.fallback == "keyframes" and self.cfg.fusion_recent > 0:
+                if self.cfg.fusion_recent > 0 and (self.cfg.fallback == "keyframes"
+                                                   or self.cfg.depth_fusion):
                     self._recent.append(StoredView(
                         frame.stamp_ns, frame.pose, frame.intrinsics, frame.depth,
                         np.asarray(record.embedding, np.float16)))
@@ -367,6 +380,14 @@ class MapperStage:
         gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
         return [kfs[i] for i in np.argsort(gap, kind="stable")[: self.cfg.coverage_keyframes]]
 
+    def _recent_views(self, frame: Frame) -> list:
+        """The held recent non-keyframe frames (``fusion_recent``), the frame itself left
+        out."""
+        if self.cfg.fusion_recent <= 0:
+            return []
+        with self._lock:
+            return [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
+
     def field_weight(self, kfs: list, points: np.ndarray | None, mask: np.ndarray | None,
                      height: int, width: int) -> np.ndarray:
         """(height, width) weight of the field against the backbone (see module doc), from
@@ -386,13 +407,10 @@ class MapperStage:
                       points: np.ndarray | None, mask: np.ndarray | None,
                       logit_channels: int) -> tuple[np.ndarray, np.ndarray | None]:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
-        stored embeddings of the nearest keyframes ``kfs`` (and the recent frames) that see
-        it (:func:`fuse_keyframes`); pixels without depth keep the frame's own. Also the
-        (h, w) mean of the views' own entropies (fusion probabilities and a
+        stored embeddings of the views ``kfs`` (the nearest keyframes and the held recent
+        frames) that see it (:func:`fuse_keyframes`); pixels without depth keep the
+        frame's own. Also the (h, w) mean of the views' own entropies (fusion probabilities and a
         ``disagreement_weight``; None otherwise)."""
-        if self.cfg.fusion_recent > 0:
-            with self._lock:
-                kfs = kfs + [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
         if not kfs:
             return backbone, None
         out = backbone.copy()
@@ -420,15 +438,20 @@ class MapperStage:
         # The view's geometry, once for the coverage, the fusion and the rays.
         intr = f.intrinsics.scaled(w, h)
         depth = resize_to(f.depth, h, w, cv2.INTER_NEAREST)
-        kfs = self._nearest_keyframes(f) if self.cfg.fallback != "none" else []
         fuse = self.cfg.fallback == "keyframes"
-        points, mask = (backproject(depth, intr, f.pose)
-                        if kfs or (fuse and self.cfg.fusion_recent > 0) else (None, None))
+        kfs = (self._nearest_keyframes(f)
+               if self.cfg.fallback != "none" or self.cfg.depth_fusion else [])
+        views = kfs + self._recent_views(f) if fuse or self.cfg.depth_fusion else kfs
+        view_depth = None
+        if self.cfg.depth_fusion:  # full size: discovery cuts its segments on it
+            view_depth, _ = fuse_depth(f.depth, f.intrinsics, f.pose, views,
+                                       self.cfg.coverage_depth_tolerance)
+        points, mask = backproject(depth, intr, f.pose) if views else (None, None)
         weight = (self.field_weight(kfs, points, mask, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
         mean_h = None
         if fuse:
-            backbone, mean_h = self.keyframe_fill(f, backbone, kfs, points, mask,
+            backbone, mean_h = self.keyframe_fill(f, backbone, views, points, mask,
                                                   spec.logit_channels)
         iterations = mapper.iterations
         emb = backbone.copy()
@@ -454,7 +477,8 @@ class MapperStage:
         self.health.count("views")
         self.health.count("views_keyframe" if job.keyframe else "views_frame")
         self.health.gauge("iterations", iterations)
-        return ViewRecord(f, emb, ent, spec, job.keyframe, float(weight.mean()), iterations)
+        return ViewRecord(f, emb, ent, spec, job.keyframe, float(weight.mean()), iterations,
+                          view_depth)
 
     def summary(self) -> str:
         c = self.health.counts

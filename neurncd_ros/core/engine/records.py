@@ -130,7 +130,10 @@ class ViewRecord:
       (``render_scale``);
     - ``field_share``: share of pixels taken from the field rather than the backbone;
     - ``keyframe``: the frame was admitted as a keyframe;
-    - ``iterations``: field training iterations when it was rendered.
+    - ``iterations``: field training iterations when it was rendered;
+    - ``depth``: the view's depth as discovery gets it, full size: the measured depth
+      averaged with the keyframes' (``mapper_node.depth_fusion``); None = the frame's
+      measured depth (:attr:`view_depth` gives either).
     """
 
     frame: Frame
@@ -140,10 +143,16 @@ class ViewRecord:
     keyframe: bool = False
     field_share: float = 1.0
     iterations: int = 0
+    depth: np.ndarray | None = None
 
     @property
     def stamp_ns(self) -> int:
         return self.frame.stamp_ns
+
+    @property
+    def view_depth(self) -> np.ndarray:
+        """The depth discovery segments: fused if the mapper fused it, else measured."""
+        return self.frame.depth if self.depth is None else self.depth
 
 
 @dataclasses.dataclass

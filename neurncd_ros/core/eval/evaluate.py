@@ -65,7 +65,7 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
 
     engine = OfflineEngine(cfg)
     keep: dict[str, list] = {k: [] for k in (
-        "rgb", "depth", "intr", "pose", "semantic", "embedding", "entropy", "logits",
+        "rgb", "depth", "view_depth", "intr", "pose", "semantic", "embedding", "entropy", "logits",
         "full", "keyframe", "stamp", "iterations")}
     ids = None
     for o in engine.run(frames, total, progress):
@@ -75,7 +75,8 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
         ids = o.embedding.spec.ids()
         S = o.view.spec.logit_channels
         keep["rgb"].append(f.rgb)
-        keep["depth"].append(f.depth)
+        keep["depth"].append(f.depth)  # measured: the per-frame baselines segment this
+        keep["view_depth"].append(v.view_depth)  # the mapper's (fused): the system's rows
         keep["intr"].append(f.intrinsics)
         keep["pose"].append(f.pose)
         keep["semantic"].append(f.semantic)
@@ -101,8 +102,9 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
 
 
 def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
-              embeddings: list | None = None) -> list[np.ndarray]:
-    """The discovery stage (a fresh Discoverer) over the cached frames."""
+              embeddings: list | None = None, depth: str = "view_depth") -> list[np.ndarray]:
+    """The discovery stage (a fresh Discoverer) over the cached frames, segmenting
+    ``keep[depth]`` (the mapper's view depth, or ``"depth"``: the measured one)."""
     c2i = np.asarray(keep["_c2i"])
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
                    mod_cfg=mod_cfg, fusion_cfg=cfg.label_fusion)
@@ -115,7 +117,7 @@ def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
             emb = keep["embedding"][i].astype(np.float32)
             ent = keep["entropy"][i]
         rgb = keep["rgb"][i] if cfg.segmentation.colour_edges else None
-        out.append(d.process(keep["depth"][i], keep["intr"][i], emb, ent,
+        out.append(d.process(keep[depth][i], keep["intr"][i], emb, ent,
                              keep["stamp"][i], rgb, pose=keep["pose"][i]))
     return out
 
@@ -126,7 +128,7 @@ def geometry_only(keep: dict, cfg, seed: int = 0) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
     segs, descs, owner = [], [], []
     for i in range(len(keep["stamp"])):
-        depth, intr, pose = keep["depth"][i], keep["intr"][i], keep["pose"][i]
+        depth, intr, pose = keep["view_depth"][i], keep["intr"][i], keep["pose"][i]
         seg = segment_depth(depth, intr, cfg.segmentation)
         segs.append(seg)
         pts = points_image(depth, intr)
@@ -213,7 +215,8 @@ class VoxelMap:
 
 def explicit_baseline(keep: dict, cfg) -> list[np.ndarray]:
     """Backbone logits of every labelled frame fused in a voxel map; each frame's fused
-    embedding and its entropy labelled by the same discovery stage (no field)."""
+    embedding and its entropy labelled by the same discovery stage on the measured depth
+    (no field, no mapper stage)."""
     S = keep["logits"][0].shape[2]
     vm = VoxelMap(S)
     fused = []
@@ -224,7 +227,7 @@ def explicit_baseline(keep: dict, cfg) -> list[np.ndarray]:
             continue
         vm.fuse(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg)
         fused.append(vm.lookup(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg))
-    return _discover(keep, cfg, cfg.modulation, embeddings=fused)
+    return _discover(keep, cfg, cfg.modulation, embeddings=fused, depth="depth")
 
 
 def _confusion(ev: Evaluator) -> list[list[int]]:
