@@ -256,16 +256,29 @@ class LabelFusion:
             ids_of_col[c] = i
         return np.where(vox[np.arange(rows.size), best] > 0, ids_of_col[best], 0)
 
+    def _renamed(self, lab: np.ndarray) -> np.ndarray:
+        """Integer labels with every aliased novel id replaced by the id it is published as."""
+        if not self._alias:
+            return lab
+        src = np.array(list(self._alias), np.int64)
+        lut = np.arange(max(int(lab.max()), int(src.max())) + 1, dtype=np.int64)
+        lut[src] = [self._alias[a] for a in src.tolist()]
+        return lut[lab]
+
+    def _add_alias(self, src: int, dst: int) -> None:
+        """Publish novel id ``src`` as ``dst`` from now on; ids published as ``src`` follow
+        (the table stays flat: one lookup resolves any id)."""
+        self._alias[src] = dst
+        for k, v in self._alias.items():
+            if v == src:
+                self._alias[k] = dst
+
     def _aliased(self, lab: np.ndarray, rows: np.ndarray, inv: np.ndarray) -> np.ndarray:
         """The frame's labels (at its depth pixels; their voxels' storage ``rows`` and
         each pixel's voxel ``inv``) with novel ids renamed: known aliases first, then new
         ones where a novel id's pixels land mostly on surface the map already gives
         another novel id (``alias_share``)."""
-        if self._alias:
-            src = np.array(list(self._alias), np.int64)
-            lut = np.arange(max(int(lab.max()), int(src.max())) + 1, dtype=np.int64)
-            lut[src] = [self._alias[a] for a in src.tolist()]
-            lab = lut[lab]
+        lab = self._renamed(lab)
         novel = lab >= NOVEL_ID_START
         if self.cfg.alias_share <= 0 or not novel.any() or not self._votes.shape[1]:
             return lab
@@ -282,14 +295,10 @@ class LabelFusion:
                 continue
             ids, n = np.unique(other, return_counts=True)
             if n.max() >= self.cfg.alias_share * sel.sum():
-                a = int(ids[n.argmax()])
-                a = self._alias.get(a, a)
+                a = self._alias.get(int(ids[n.argmax()]), int(ids[n.argmax()]))
                 if a == b:
                     continue
-                self._alias[b] = a
-                for k, v in self._alias.items():  # keep the table flat
-                    if v == b:
-                        self._alias[k] = a
+                self._add_alias(b, a)
                 lab = np.where(lab == b, a, lab)
         return lab
 
@@ -306,12 +315,7 @@ class LabelFusion:
         within ``TOUCH_MAX_ANGLE_DEG`` of parallel. Two objects that merely touch share
         a small part of their outlines; the ceiling meets a window at a right angle.
         """
-        lab = np.asarray(labels).astype(np.int64)
-        if self._alias:
-            src = np.array(list(self._alias), np.int64)
-            lut = np.arange(max(int(lab.max()), int(src.max())) + 1, dtype=np.int64)
-            lut[src] = [self._alias[a] for a in src.tolist()]
-            lab = lut[lab]
+        lab = self._renamed(np.asarray(labels).astype(np.int64))
         if np.count_nonzero(np.unique(lab) >= NOVEL_ID_START) < 2:
             return
         z = np.where(mask, depth, 0.0).astype(np.float32)
@@ -353,12 +357,8 @@ class LabelFusion:
                 continue
             big, small = (a, b) if size[a] >= size[b] else (b, a)
             big, small = self._alias.get(big, big), self._alias.get(small, small)
-            if big == small:
-                continue
-            self._alias[small] = big
-            for k, v in self._alias.items():  # keep the table flat
-                if v == small:
-                    self._alias[k] = big
+            if big != small:
+                self._add_alias(small, big)
 
     # ------------------------------------------------------------ main entry
     def update(self, labels: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
