@@ -295,7 +295,8 @@ class LabelFusion:
                 continue
             ids, n = np.unique(other, return_counts=True)
             if n.max() >= self.cfg.alias_share * sel.sum():
-                a = self._alias.get(int(ids[n.argmax()]), int(ids[n.argmax()]))
+                a = int(ids[n.argmax()])
+                a = self._alias.get(a, a)
                 if a == b:
                     continue
                 self._add_alias(b, a)

@@ -40,10 +40,17 @@ def resize_to(arr: np.ndarray, height: int, width: int,
     return out[:, :, None] if arr.ndim == 3 and out.ndim == 2 else out
 
 
-def _depth_at(points: np.ndarray, kf) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                               np.ndarray]:
-    """Where world points fall in a keyframe: pixel columns / rows (nearest pixel), their
-    z-depth in it and its measured depth there (0 outside its image or behind it)."""
+def _agrees(zk: np.ndarray, z: np.ndarray, tolerance: float) -> np.ndarray:
+    """The visibility test: a keyframe's measured depth ``zk`` (0 = none) agrees with a
+    point's depth ``z`` in it within ``tolerance`` + 3 % of the depth (the point is in
+    view, not occluded)."""
+    return (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
+
+
+def seen_by(points: np.ndarray, kf, tolerance: float
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which world points a keyframe sees (in its image, in front, its measured depth
+    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
     u, v, z = project(points, kf.intrinsics, kf.pose)
     ui = np.floor(u + 0.5).astype(np.int64)
     vi = np.floor(v + 0.5).astype(np.int64)
@@ -51,15 +58,7 @@ def _depth_at(points: np.ndarray, kf) -> tuple[np.ndarray, np.ndarray, np.ndarra
     ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
     zk = np.zeros(len(points), np.float32)
     zk[ok] = kf.depth[vi[ok], ui[ok]]
-    return ui, vi, z, zk
-
-
-def seen_by(points: np.ndarray, kf, tolerance: float
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which world points a keyframe sees (in its image, in front, its measured depth
-    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
-    ui, vi, z, zk = _depth_at(points, kf)
-    return (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z), ui, vi
+    return ok & _agrees(zk, z, tolerance), ui, vi
 
 
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
@@ -171,7 +170,7 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
         vi = (vf[idx] + 0.5).astype(np.int64)
         zk = kf.depth.reshape(-1)[vi * kw + ui]
         zf = z[idx]
-        seen = (zk > 0) & (np.abs(zk - zf) <= tolerance + 0.03 * zf)
+        seen = _agrees(zk, zf, tolerance)
         if not seen.any():
             continue
         idx, zk, zf = idx[seen], zk[seen], zf[seen]
