@@ -12,10 +12,12 @@ Accuracy: ``default_*`` on the 5 validation seeds of the training record
 (fractions); ``test_no_branch_*`` and ``default_no_branch_ms_*`` are the shipped weights
 without their novelty branch (``backbone.novelty_branch`` false), when they have one.
 Speed: ``default_ms_320x240`` is the median of predict() as the package runs it (batch
-norms folded, NHWC, novelty branch), timed interleaved, one call per round, with the
-same net without its branch (``default_no_branch_ms_320x240``, the difference
-``default_branch_cost_ms``) and the net exactly as trained (``default_unfolded_ms_320x240``,
-the ratio ``default_folding_speedup``); ``default_ms_320x240_p10`` / ``_p90`` and
+norms folded, NHWC, novelty branch, a frozen TorchScript graph), timed interleaved, one
+call per round, with the same net run eagerly (``default_eager_ms_320x240``, the ratio
+``default_graph_speedup``; ``backbone.graph`` false), the same net without its branch
+(``default_no_branch_ms_320x240``, the difference ``default_branch_cost_ms``) and the net
+exactly as trained (``default_unfolded_ms_320x240``, the ratio
+``default_folding_speedup``); ``default_ms_320x240_p10`` / ``_p90`` and
 ``default_share_within_target`` (frames within the 40 ms budget, a fraction) describe the
 spread, since this machine's speed drifts. ``default_precision`` is what
 ``backbone.precision`` auto chose here; when it is bfloat16, the same net in float32 is
@@ -95,11 +97,14 @@ TARGET_MS = 40.0
 
 
 def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None,
-                      float32: bb.Backbone | None, runs: int) -> dict:
+                      float32: bb.Backbone | None, eager: bb.Backbone | None,
+                      runs: int) -> dict:
     """predict() of the package's net (batch norms folded, NHWC, with its novelty
     branch, in the precision ``backbone.precision`` auto resolves to), of the same net
     without the branch (``plain``; None when the weights have no branch), of the same
-    net in float32 (``float32``; None when the package's already is), and of the net
+    net in float32 (``float32``; None when the package's already is), of the same net
+    run eagerly (``eager``: backbone.graph false; None when the package's already is),
+    and of the net
     exactly as trained (as read from the weight file), one call of each per round,
     ``runs`` rounds.
 
@@ -115,7 +120,7 @@ def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None,
                           small.prepare_inputs)
     trained.net.novelty_branch = backbone.novelty_branch
     variants = {"default": backbone, "no_branch": plain, "float32": float32,
-                "unfolded": trained}
+                "eager": eager, "unfolded": trained}
     variants = {k: v for k, v in variants.items() if v is not None}
     rng = np.random.default_rng(1)
     rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
@@ -145,6 +150,9 @@ def interleaved_speed(backbone: bb.Backbone, plain: bb.Backbone | None,
     if "float32" in ms:
         res["default_float32_ms_320x240"] = ms["float32"]
         res["default_bfloat16_speedup"] = ms["float32"] / ms["default"]
+    if "eager" in ms:
+        res["default_eager_ms_320x240"] = ms["eager"]
+        res["default_graph_speedup"] = ms["eager"] / ms["default"]
     return res
 
 
@@ -276,9 +284,13 @@ def main() -> int:
     float32 = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads,
                                                   precision="float32"))
                if backbone.input_dtype != torch.float32 else None)
+    # The same net run eagerly (backbone.graph false), when the package's runs as a graph.
+    eager = (bb.load_backbone(bb.BackboneConfig(num_threads=args.threads, graph=False))
+             if backbone.graph else None)
     res["default_precision"] = backbone.precision
+    res["default_graph"] = backbone.graph
     res.update(default_speed(backbone, runs))
-    res.update(interleaved_speed(backbone, plain, float32, 60 if args.quick else 300))
+    res.update(interleaved_speed(backbone, plain, float32, eager, 60 if args.quick else 300))
     acc, shown = accuracy(backbone, 5 if args.quick else 1)
     res.update(acc)
     # The project's test scenes too (never used for training, validation or tuning).

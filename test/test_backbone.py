@@ -97,6 +97,34 @@ def test_inference_net_is_the_trained_function_with_batch_norms_folded(float32_b
     assert (ours.argmax(-1) == ref.argmax(-1)).mean() > 0.9999
 
 
+def test_graph_backbone_computes_what_the_eager_net_computes(float32_backbone,
+                                                             held_out_frames):
+    """backbone.graph (the default) runs the net as a frozen TorchScript graph traced per
+    input shape: on real frames of two sizes in one batch, logits and penultimate
+    features equal the eager net's, one graph is traced per shape and reused, and
+    warm_up traces the input size before the first frame."""
+    assert float32_backbone.graph
+    eager = bb.load_backbone(bb.BackboneConfig(num_threads=0, precision="float32",
+                                               graph=False, features=True))
+    graph = bb.load_backbone(bb.BackboneConfig(num_threads=0, precision="float32",
+                                               features=True))
+    assert not eager.graph and not graph._graphs
+    graph.warm_up()
+    assert len(graph._graphs) == 1
+    a, b = held_out_frames
+    small_rgb, small_depth = b.rgb[::2, ::2].copy(), b.depth[::2, ::2].copy()
+    for features in (False, True):
+        ours = graph.predict_batch([a.rgb, small_rgb], [a.depth, small_depth], features)
+        ref = eager.predict_batch([a.rgb, small_rgb], [a.depth, small_depth], features)
+        for o, r in zip(ours, ref):
+            assert o.shape == r.shape
+            np.testing.assert_allclose(o, r, rtol=1e-5, atol=1e-5 * float(np.abs(r).max()))
+    assert len(graph._graphs) == 3  # warm-up (batch 1, features), batch 2 without and with
+    graph.embed(a.rgb, a.depth)
+    assert len(graph._graphs) == 3  # the camera's size maps to the traced input shape
+    assert not eager._graphs
+
+
 def test_bfloat16_net_labels_real_frames_as_the_float32_net(float32_backbone, held_out_frames):
     """backbone.precision bfloat16 runs the encoder and decoder in bfloat16 and keeps the
     class heads in float32: on real held-out frames it returns float32 logits whose

@@ -334,3 +334,15 @@ def test_forward_at_native_480x640(esanet_key_list):
     with torch.no_grad():
         out = m(torch.randn(1, 3, 480, 640), torch.randn(1, 1, 480, 640))
     assert list(out.shape) == rec["eval_output_shape"]
+
+
+def test_esanet_graph_computes_what_the_eager_net_computes(real_data_dir, model37):
+    """backbone.graph runs ESANet as a frozen TorchScript graph too: on a real Kinect
+    frame its logits equal the eager model's, and the caller's model stays a module."""
+    rgb, depth = _kinect_frame(real_data_dir)
+    size = {"esanet_dataset": "sunrgbd", "input_width": 320, "input_height": 256}
+    graph, eager = _esanet(model37, **size), _esanet(model37, graph=False, **size)
+    assert graph.graph and not eager.graph
+    ours, ref = graph.predict(rgb, depth), eager.predict(rgb, depth)
+    assert len(graph._graphs) == 1 and isinstance(graph.net, torch.nn.Module)
+    np.testing.assert_allclose(ours, ref, rtol=1e-5, atol=1e-5 * float(np.abs(ref).max()))

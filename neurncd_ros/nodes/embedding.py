@@ -41,6 +41,7 @@ def make_node():
             self.health = Health("embedding", ros_logger(self), node_cfg.log_throttle_s)
             self.stage = EmbeddingStage(load_backbone(self.cfg.backbone), node_cfg,
                                         self.health)
+            self.stage.backbone.warm_up()  # backbone.graph: traced now, not on frame one
             spec = self.stage.spec
             self.get_logger().info(f"backbone {spec.backbone}: {spec.logit_channels} logit + "
                                    f"{spec.feature_channels} feature channels, novelty branch "

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -88,6 +89,12 @@ class BackboneConfig:
                            "entropy, in float32; auto = bfloat16 where the CPU has it "
                            "natively, else float32 (bench/results/backbone.json)",
                            choices=("auto", "float32", "bfloat16"))
+    graph: bool = param(True, "run the network as a frozen TorchScript graph, traced on "
+                         "first use for each input shape (under 1 s, once; the embedding "
+                         "node does it at start): the same outputs without PyTorch's "
+                         "per-layer Python dispatch, less time per frame (on 2 cores: "
+                         "bench/results/backbone.json, default_graph_speedup); "
+                         "false = eager PyTorch, e.g. to debug or profile the net")
     num_threads: int = param(1, "torch CPU threads the executable running the backbone sets "
                              "(0 = leave torch's setting); 1 because the "
                              "nodes share the cores and more threads than free cores stall "
@@ -145,7 +152,7 @@ class Backbone:
     def __init__(self, net: torch.nn.Module, kind: str, channel_to_id: np.ndarray,
                  input_size: tuple[int, int], device: str, preprocess,
                  channels_last: bool = False, feature_channels: int = 0,
-                 input_dtype: torch.dtype = torch.float32) -> None:
+                 input_dtype: torch.dtype = torch.float32, graph: bool = False) -> None:
         self.net = net.eval()
         self.kind = kind
         self.channel_to_id = np.asarray(channel_to_id, dtype=np.uint16)
@@ -160,6 +167,46 @@ class Backbone:
         # The dtype the net's first layers take (bfloat16 under backbone.precision);
         # outputs are always returned as float32.
         self.input_dtype = input_dtype
+        # Frozen TorchScript graphs of the net (backbone.graph), one per (features, input
+        # shapes), traced on first use; empty and unused when graph is False.
+        self.graph = bool(graph)
+        self._graphs: dict[tuple, torch.jit.ScriptModule] = {}
+
+    GRAPH_CACHE = 8
+    """Traced graphs kept (input shapes seen: batch sizes, mostly); the oldest goes first."""
+
+    def _forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor, features: bool):
+        """The net on prepared inputs: (logits, features) with ``features``, else the
+        logits (or the net's own output). Under ``graph`` the call goes through a frozen
+        TorchScript graph of the same module, traced for these input shapes the first
+        time they occur: same arithmetic, without the per-layer Python dispatch, which
+        is a visible share of this small net's time on a CPU (default_graph_speedup in
+        bench/results/backbone.json)."""
+        fn = _WithFeatures(self.net).eval() if features else self.net
+        if not self.graph:
+            return fn(x_rgb, x_depth)
+        key = (features, tuple(x_rgb.shape), tuple(x_depth.shape), x_rgb.dtype)
+        graph = self._graphs.get(key)
+        if graph is None:
+            # Traced under no_grad (freezing under inference_mode fails on adaptive
+            # pooling); the tracer's warnings are about Python constants (class counts
+            # in the entropy) that are constants indeed.
+            with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                graph = torch.jit.freeze(torch.jit.trace(fn, (x_rgb.clone(), x_depth.clone()),
+                                                         check_trace=False))
+            if len(self._graphs) >= self.GRAPH_CACHE:
+                self._graphs.pop(next(iter(self._graphs)))
+            self._graphs[key] = graph
+        return graph(x_rgb, x_depth)
+
+    def warm_up(self) -> None:
+        """Run one blank frame at the input size, so a graph (``backbone.graph``) is
+        traced now rather than on the first real frame (which the resize maps to the
+        same input shape, whatever the camera's size)."""
+        w, h = self.input_size
+        self.predict_batch([np.zeros((h, w, 3), np.uint8)], [np.ones((h, w), np.float32)],
+                           features=self.feature_channels > 0)
 
     def inputs(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray]
                ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -227,11 +274,11 @@ class Backbone:
         with torch.inference_mode():
             x_rgb, x_depth = self.inputs(rgbs, depths)
             if features:
-                logits, feats = self.net.forward_with_features(x_rgb, x_depth)
+                logits, feats = self._forward(x_rgb, x_depth, True)
                 logits = torch.cat([logits, F.interpolate(
                     feats, size=logits.shape[-2:], mode="bilinear", align_corners=False)], 1)
             else:
-                logits = self.net(x_rgb, x_depth)
+                logits = self._forward(x_rgb, x_depth, False)
             if isinstance(logits, (tuple, list)):  # some nets return side outputs
                 logits = logits[0]
             logits = logits.float()
@@ -247,6 +294,17 @@ class Backbone:
             raise RuntimeError(f"network returned {out[0].shape[-1]} channels, "
                                f"expected {expected}")
         return out
+
+
+class _WithFeatures(torch.nn.Module):
+    """A net's ``forward_with_features`` as a module's forward (what tracing records)."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x_rgb: torch.Tensor, x_depth: torch.Tensor):
+        return self.net.forward_with_features(x_rgb, x_depth)
 
 
 def _input_size(cfg: BackboneConfig) -> tuple[int, int]:
@@ -304,7 +362,8 @@ def _load_default(cfg: BackboneConfig) -> Backbone:
         net = small.lower_precision(net, dtype)
     return Backbone(net, "default", classes.CHANNEL_TO_ID.copy(), _input_size(cfg), cfg.device,
                     small.prepare_inputs, channels_last=True,
-                    feature_channels=net.widths[0] if cfg.features else 0, input_dtype=dtype)
+                    feature_channels=net.widths[0] if cfg.features else 0, input_dtype=dtype,
+                    graph=cfg.graph)
 
 
 def esanet_channel_to_id(dataset: str) -> np.ndarray:
@@ -354,7 +413,7 @@ def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
     if dtype != torch.float32:
         net = copy.deepcopy(net).to(dtype=dtype)
     return Backbone(net, "esanet", channel_to_id, _input_size(esanet_cfg), cfg.device,
-                    preprocess, channels_last=True, input_dtype=dtype)
+                    preprocess, channels_last=True, input_dtype=dtype, graph=cfg.graph)
 
 
 def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:
