@@ -3,9 +3,10 @@
 Each synthetic scene (``--frames`` frames at 320x240, 30 Hz, Kinect-like depth)
 goes through the online engine offline exactly as ``neurncd run`` does
 (``core.engine.offline.OfflineEngine``: the embedding stage's rate gate, the
-field's keyframes, every keyframe and ``run.view_rate_hz`` other frames
-rendered at their pose and depth with the coverage blend, the ``run.*``
-training schedule), i.e. what the live graph publishes. The views (rendered
+field's keyframes, every keyframe and other frames up to ``run.view_rate_hz``
+labels per second of stream, keyframes included, rendered at their pose and
+depth with the coverage blend, the ``run.*`` training schedule), i.e. what the
+live graph publishes. The views (rendered
 embedding + entropy) and the backbone's own logits of the labelled frames are
 cached (npz under /tmp, keyed by seed, frame count, the engine's configuration,
 backbone weights, the source of the backbone, engine and field, and the
