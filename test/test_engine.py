@@ -190,6 +190,38 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     assert h((5 / 8, 3 / 8)) - h_views[0] > 0.03
 
 
+def test_fusion_inputs_reuse_each_views_probabilities_and_forget_views_no_longer_read():
+    from types import SimpleNamespace
+
+    from neurncd_ros.core.camera import Intrinsics
+    from neurncd_ros.core.engine.views import FusionInputs, fuse_keyframes
+
+    rng = np.random.default_rng(3)
+    intr = Intrinsics.from_hfov(16, 12, 60.0)
+
+    def view(stamp, x):
+        pose = np.eye(4)
+        pose[0, 3] = x
+        return SimpleNamespace(stamp_ns=stamp, pose=pose, intrinsics=intr,
+                               depth=np.full((12, 16), 2.0, np.float32),
+                               embedding=rng.normal(size=(12, 16, 5)).astype(np.float16))
+
+    views = [view(i, 0.02 * i) for i in range(4)]
+    points = np.stack([rng.uniform(-0.5, 0.5, 50), rng.uniform(-0.4, 0.4, 50),
+                       np.full(50, 2.0)], 1)
+    own = rng.normal(size=(50, 5)).astype(np.float32)
+    cache = FusionInputs()
+    for kept in (views[:3], views[1:]):  # the second rendering reads two views again
+        plain = fuse_keyframes(points, own, kept, 0.05, logit_channels=3, view_entropy=True)
+        cached = fuse_keyframes(points, own, kept, 0.05, logit_channels=3,
+                                view_entropy=True, inputs=cache)
+        for a, b in zip(plain, cached):
+            assert np.array_equal(a, b)
+        assert plain[1].max() == 4.0  # every view saw some of the points
+        cache.keep(kept)
+        assert len(cache) == 3
+
+
 def _plane_depth(intr, pose, normal, offset):
     """Exact z-depth of the plane normal . p = offset seen from a camera (camera-to-world)."""
     from neurncd_ros.core.camera import camera_directions, pixel_grid

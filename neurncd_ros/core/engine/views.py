@@ -2,10 +2,11 @@
 
 A rendered view blends the field with what the stored keyframes saw of the same
 3D points (:mod:`.mapping` decides when and how much). These functions answer
-the geometric questions that blend needs, with one visibility test: which
-keyframes see a world point (:func:`seen_by`), how far the field has learnt it
-(:func:`coverage`), and the mean of the views' embeddings of it
-(:func:`fuse_keyframes`), the multi-view evidence read directly.
+the geometric questions that blend needs, with one visibility test
+(:func:`_visible`, column arithmetic in float32): which keyframes see a point, how
+far the field has learnt it (:func:`coverage`), the mean of
+the views' embeddings of it (:func:`fuse_keyframes`, the multi-view evidence read
+directly) and of their depths (:func:`fuse_depth`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import dataclasses
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, invert_pose, project
+from ..camera import Intrinsics, invert_pose
 from ..uncertainty import entropy, softmax
 
 
@@ -47,18 +48,45 @@ def _agrees(zk: np.ndarray, z: np.ndarray, tolerance: float) -> np.ndarray:
     return (zk > 0) & (np.abs(zk - z) <= tolerance + 0.03 * z)
 
 
-def seen_by(points: np.ndarray, kf, tolerance: float
-          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which world points a keyframe sees (in its image, in front, its measured depth
-    agreeing within ``tolerance`` + 3 % of the depth), and their pixel columns / rows."""
-    u, v, z = project(points, kf.intrinsics, kf.pose)
-    ui = np.floor(u + 0.5).astype(np.int64)
-    vi = np.floor(v + 0.5).astype(np.int64)
-    h, w = kf.depth.shape
-    ok = (z > 0) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    zk = np.zeros(len(points), np.float32)
-    zk[ok] = kf.depth[vi[ok], ui[ok]]
-    return ok & _agrees(zk, z, tolerance), ui, vi
+def _camera_map(kf, world_to_points: np.ndarray | None = None) -> np.ndarray:
+    """(3, 4) float32 map from point coordinates to a keyframe's homogeneous pixel
+    coordinates (u z, v z, z): world points, or with ``world_to_points`` (the pose of the
+    frame the points are given in) points in that frame."""
+    M = invert_pose(kf.pose)
+    if world_to_points is not None:
+        M = M @ world_to_points
+    return (kf.intrinsics.K @ M[:3]).astype(np.float32)
+
+
+def _columns(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The x, y, z of (N, 3) points as contiguous float32 columns (millimetre precision is
+    all the visibility test needs; column arithmetic is several times faster than an
+    (N, 3) matmul)."""
+    p = np.asarray(points, np.float32)
+    return (np.ascontiguousarray(p[:, 0]), np.ascontiguousarray(p[:, 1]),
+            np.ascontiguousarray(p[:, 2]))
+
+
+def _visible(cols: tuple[np.ndarray, np.ndarray, np.ndarray], M: np.ndarray, kf,
+             tolerance: float) -> tuple[np.ndarray, ...]:
+    """The points (columns ``cols``, mapped into the keyframe by ``M``) a keyframe sees:
+    in its image (nearest pixel), in front, its measured depth agreeing (:func:`_agrees`).
+    Returns their indices, pixel columns and rows in the keyframe, the keyframe's
+    measured depth there and the points' own depth in the keyframe."""
+    x, y, w0 = cols
+    z = M[2, 0] * x + M[2, 1] * y + M[2, 2] * w0 + M[2, 3]
+    kh, kw = kf.depth.shape
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uf = (M[0, 0] * x + M[0, 1] * y + M[0, 2] * w0 + M[0, 3]) / z
+        vf = (M[1, 0] * x + M[1, 1] * y + M[1, 2] * w0 + M[1, 3]) / z
+    idx = np.flatnonzero((z > 1e-6) & (uf >= -0.5) & (uf < kw - 0.5)
+                         & (vf >= -0.5) & (vf < kh - 0.5))
+    ui = (uf[idx] + 0.5).astype(np.int64)  # non-negative: truncation is the rounding
+    vi = (vf[idx] + 0.5).astype(np.int64)
+    zk = kf.depth.reshape(-1)[vi * kw + ui]
+    zp = z[idx]
+    seen = _agrees(zk, zp, tolerance)
+    return idx[seen], ui[seen], vi[seen], zk[seen], zp[seen]
 
 
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
@@ -70,17 +98,61 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
     ``tolerance`` + 3 % of the depth): visible, not occluded.
     """
     cov = np.zeros(len(points))
+    cols = _columns(points)
     for kf, m in zip(keyframes, maturity):
         if m <= 0:
             continue
-        seen, _, _ = seen_by(points, kf, tolerance)
-        np.maximum(cov, m * seen, out=cov)
+        idx = _visible(cols, _camera_map(kf), kf, tolerance)[0]
+        cov[idx] = np.maximum(cov[idx], m)
     return cov
+
+
+class FusionInputs:
+    """Each stored view's embedding as :func:`fuse_keyframes` reads it, computed once per
+    view instead of once per rendering that reads it (:func:`view_inputs`): flattened to
+    (h * w, C) float32 with the first S channels as class probabilities, and (on request)
+    the per-pixel entropy of those S channels. Keyed by the view's stamp (a stored view's
+    embedding never changes); :meth:`keep` drops the views a rendering no longer reads,
+    so the memory stays that of one rendering's views."""
+
+    def __init__(self) -> None:
+        self._store: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+
+    def get(self, view, channels: int, logit_channels: int, with_entropy: bool
+            ) -> tuple[np.ndarray, np.ndarray | None]:
+        key = (int(view.stamp_ns), int(channels))
+        hit = self._store.get(key)
+        if hit is None or (with_entropy and logit_channels and hit[1] is None):
+            hit = view_inputs(view.embedding, channels, logit_channels, with_entropy)
+            self._store[key] = hit
+        return hit
+
+    def keep(self, views: list) -> None:
+        """Forget every view but these."""
+        stamps = {int(v.stamp_ns) for v in views}
+        for key in [k for k in self._store if k[0] not in stamps]:
+            del self._store[key]
+
+    def __len__(self) -> int:
+        return len(self._store)
+
+
+def view_inputs(embedding: np.ndarray, channels: int, logit_channels: int,
+                with_entropy: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """One stored view's (h, w, >= channels) embedding as the fusion reads it (see
+    :class:`FusionInputs`): (h * w, channels) float32, the first ``logit_channels`` as
+    class probabilities, and their (h * w,) entropy if asked."""
+    flat = np.array(embedding[..., :channels], np.float32).reshape(-1, channels)  # a copy
+    S = int(logit_channels)
+    h = entropy(flat[:, :S]) if S and with_entropy else None
+    if S:
+        flat[:, :S] = softmax(flat[:, :S])
+    return flat, h
 
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None,
-                   view_entropy: bool = False
+                   view_entropy: bool = False, inputs: FusionInputs | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
@@ -94,6 +166,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     (softmax) and return their log, so the entropy of the result is the
     predictive entropy over the views, which grows where they disagree (a
     novelty cue no single frame has); None averages every channel as it is.
+    ``inputs`` keeps each keyframe's probabilities between renderings (the softmax of
+    a stored view is then computed once, not per rendering); None computes them here.
 
     This is the multi-view evidence the field is trained on, read directly: until
     the field has learnt a point, the view's embedding there is the mean over the
@@ -101,6 +175,7 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     called wall from one angle, is outvoted by the others).
     """
     S = 0 if logit_channels is None else int(logit_channels)
+    C = own.shape[1]
     acc = own.astype(np.float32, copy=True)
     h_sum = None
     if S and view_entropy:
@@ -108,21 +183,24 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     if S:
         acc[:, :S] = softmax(acc[:, :S])
     n = np.ones(len(points), np.float32)
+    cols = _columns(points)
     for kf in keyframes:
-        seen, ui, vi = seen_by(points, kf, tolerance)
-        if not seen.any():
+        idx, ui, vi, _, _ = _visible(cols, _camera_map(kf), kf, tolerance)
+        if not idx.size:
             continue
         h, w = kf.depth.shape
         eh, ew = kf.embedding.shape[:2]
-        ue = np.minimum(((ui[seen] + 0.5) * ew / w).astype(np.int64), ew - 1)
-        ve = np.minimum(((vi[seen] + 0.5) * eh / h).astype(np.int64), eh - 1)
-        emb = kf.embedding[ve, ue, : acc.shape[1]].astype(np.float32)
+        if (eh, ew) == (h, w):
+            flat_i = vi * ew + ui
+        else:
+            flat_i = (np.minimum(((vi + 0.5) * eh / h).astype(np.int64), eh - 1) * ew
+                      + np.minimum(((ui + 0.5) * ew / w).astype(np.int64), ew - 1))
+        probs, ent = (inputs.get(kf, C, S, h_sum is not None) if inputs is not None
+                      else view_inputs(kf.embedding, C, S, h_sum is not None))
         if h_sum is not None:
-            h_sum[seen] += entropy(emb[:, :S])
-        if S:
-            emb[:, :S] = softmax(emb[:, :S])
-        acc[seen] += emb
-        n[seen] += 1.0
+            h_sum[idx] += ent[flat_i]
+        acc[idx] += np.take(probs, flat_i, axis=0)
+        n[idx] += 1.0
     acc /= n[:, None]
     if S:
         acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
@@ -135,7 +213,7 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
     same point measured of it, and how many depths were averaged per pixel (1 where no
     keyframe sees it; 0 where the view has no depth, which stays 0).
 
-    A keyframe sees a pixel's point by the visibility test of :func:`seen_by`. It
+    A keyframe sees a pixel's point by the visibility test of :func:`_visible`. It
     measured the surface at ``zk`` along its own ray through the point, where the view
     put it at ``z`` (both in the keyframe's camera): its estimate of the point is the
     view's point moved along that ray by the factor ``zk / z``, and the view's depth of
@@ -155,25 +233,13 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
     x = (u.astype(np.float32) - np.float32(intrinsics.cx)) * (own / np.float32(intrinsics.fx))
     y = (v.astype(np.float32) - np.float32(intrinsics.cy)) * (own / np.float32(intrinsics.fy))
     acc, n = own.astype(np.float64), np.ones(len(own), np.float32)
+    cols = (x, y, own)
     world_to_view = invert_pose(pose)
     for kf in keyframes:
         # view camera -> keyframe pixels in one 3x4 map: (u z, v z, z) of each point.
-        P = (kf.intrinsics.K @ (invert_pose(kf.pose) @ pose)[:3]).astype(np.float32)
-        z = P[2, 0] * x + P[2, 1] * y + P[2, 2] * own + P[2, 3]
-        kh, kw = kf.depth.shape
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uf = (P[0, 0] * x + P[0, 1] * y + P[0, 2] * own + P[0, 3]) / z
-            vf = (P[1, 0] * x + P[1, 1] * y + P[1, 2] * own + P[1, 3]) / z
-        idx = np.flatnonzero((z > 1e-6) & (uf >= -0.5) & (uf < kw - 0.5)
-                             & (vf >= -0.5) & (vf < kh - 0.5))
-        ui = (uf[idx] + 0.5).astype(np.int64)  # non-negative: truncation is the rounding
-        vi = (vf[idx] + 0.5).astype(np.int64)
-        zk = kf.depth.reshape(-1)[vi * kw + ui]
-        zf = z[idx]
-        seen = _agrees(zk, zf, tolerance)
-        if not seen.any():
+        idx, _, _, zk, zf = _visible(cols, _camera_map(kf, pose), kf, tolerance)
+        if not idx.size:
             continue
-        idx, zk, zf = idx[seen], zk[seen], zf[seen]
         # The keyframe's centre in the view's camera: the view-z of (point - centre) is
         # own - its z, so the estimate's view depth is own + (zk / z - 1) (own - c_z).
         c_z = (world_to_view @ kf.pose)[2, 3]
