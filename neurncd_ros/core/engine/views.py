@@ -116,11 +116,11 @@ class FusionInputs:
     so the memory stays that of one rendering's views."""
 
     def __init__(self) -> None:
-        self._store: dict[tuple[int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+        self._store: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray | None]] = {}
 
     def get(self, view, channels: int, logit_channels: int, with_entropy: bool
             ) -> tuple[np.ndarray, np.ndarray | None]:
-        key = (int(view.stamp_ns), int(channels))
+        key = (int(view.stamp_ns), int(channels), int(logit_channels))
         hit = self._store.get(key)
         if hit is None or (with_entropy and logit_channels and hit[1] is None):
             hit = view_inputs(view.embedding, channels, logit_channels, with_entropy)
