@@ -75,13 +75,11 @@ class MapperNodeConfig:
     save_period_s: float = param(30.0, "save the map this often while running, so a killed "
                                  "mapper restarts from it (0 = only at shutdown)", lo=0.0,
                                  hi=86400.0, unit="s")
-    render_scale: float = param(1.0, "rendered view size relative to the depth frame "
-                                "(discovery resizes it back; the cost of the fusion and of "
-                                "the field's rendering grows with the pixel count). 1 keeps "
-                                "the backbone's resolution, which object borders and small "
-                                "objects need: tuning seeds 500-509, all / known / novel "
-                                "77.58 / 85.39 / 58.06 at 1 against 77.06 / 84.92 / 57.55 "
-                                "at 0.5", lo=0.1, hi=1.0)
+    render_scale: float = param(1.0, "view size relative to the depth frame (the fusion's "
+                                "and the field's cost grow with the pixels). 1 keeps the "
+                                "backbone's resolution for borders and small objects: tuning "
+                                "seeds 500-509, all / known / novel 77.58 / 85.39 / 58.06 at "
+                                "1, 77.06 / 84.92 / 57.55 at 0.5", lo=0.1, hi=1.0)
     max_in_flight: int = param(2, "views published and not yet labelled before the "
                                "renderer waits for discovery", lo=1, hi=100)
     in_flight_timeout_s: float = param(5.0, "a view not labelled within this is no longer "
@@ -402,9 +400,8 @@ class MapperStage:
         the ``mask`` pixels."""
         maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
                              for k in kfs])
-        # A pixel's weight is at most the best maturity / full_coverage, and weights below
-        # min_field_weight are not rendered: while no keyframe is that mature (a new map),
-        # no pixel is, and the visibility tests are skipped.
+        # A weight is at most the best maturity / full_coverage; below min_field_weight
+        # nothing is rendered, so while no keyframe is that mature no test is needed.
         if (not np.any(maturity > 0) or maturity.max() / self.cfg.full_coverage
                 < self.cfg.min_field_weight):
             return np.zeros((height, width), np.float32)
