@@ -220,6 +220,13 @@ def test_fusion_inputs_reuse_each_views_probabilities_and_forget_views_no_longer
         assert plain[1].max() == 4.0  # every view saw some of the points
         cache.keep(kept)
         assert len(cache) == 3
+    # After a map reset a new view may come with an old stamp: it is converted anew.
+    fresh = view(2, 0.04)
+    again = fuse_keyframes(points, own, views[1:2] + [fresh] + views[3:], 0.05,
+                           logit_channels=3, inputs=cache)[0]
+    plain = fuse_keyframes(points, own, views[1:2] + [fresh] + views[3:], 0.05,
+                           logit_channels=3)[0]
+    assert np.array_equal(again, plain)
 
 
 def _plane_depth(intr, pose, normal, offset):

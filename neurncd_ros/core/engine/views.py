@@ -111,21 +111,26 @@ class FusionInputs:
     """Each stored view's embedding as :func:`fuse_keyframes` reads it, computed once per
     view instead of once per rendering that reads it (:func:`view_inputs`): flattened to
     (h * w, C) float32 with the first S channels as class probabilities, and (on request)
-    the per-pixel entropy of those S channels. Keyed by the view's stamp (a stored view's
-    embedding never changes); :meth:`keep` drops the views a rendering no longer reads,
-    so the memory stays that of one rendering's views."""
+    the per-pixel entropy of those S channels. An entry is found by the view's stamp and
+    used only while it was made from the very embedding array the view holds, so a view
+    of the same stamp after a map reset (a bag replayed again, another bag whose stamps
+    start alike) is converted anew; :meth:`keep` drops the views a rendering no longer
+    reads, so the memory stays that of one rendering's views."""
 
     def __init__(self) -> None:
-        self._store: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray | None]] = {}
+        self._store: dict[tuple[int, int, int],
+                          tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
 
     def get(self, view, channels: int, logit_channels: int, with_entropy: bool
             ) -> tuple[np.ndarray, np.ndarray | None]:
         key = (int(view.stamp_ns), int(channels), int(logit_channels))
         hit = self._store.get(key)
-        if hit is None or (with_entropy and logit_channels and hit[1] is None):
-            hit = view_inputs(view.embedding, channels, logit_channels, with_entropy)
+        if (hit is None or hit[0] is not view.embedding
+                or (with_entropy and logit_channels and hit[2] is None)):
+            hit = (view.embedding, *view_inputs(view.embedding, channels, logit_channels,
+                                                with_entropy))
             self._store[key] = hit
-        return hit
+        return hit[1], hit[2]
 
     def keep(self, views: list) -> None:
         """Forget every view but these."""
