@@ -264,7 +264,9 @@ def parse_overrides(pairs: list[str] | None, option: str = "--set") -> dict[str,
 def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
     """Read and validate a parameter file (default: the shipped config/neurncd.yaml).
 
-    ``overrides`` are dotted names applied on top (as from the command line).
+    ``overrides`` are dotted names applied on top (as from the command line). An error
+    names its source: the file when the file alone is invalid, else the first override
+    that makes it so (a bad ``--set`` value is not blamed on the file).
     """
     path = Path(path) if path else DEFAULT_CONFIG
     if not path.is_file():
@@ -273,13 +275,21 @@ def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None
     for key in overrides or {}:
         if "." not in key:
             raise ConfigError(f"{key}: override must be <section>.<name>")
-    try:
+    try:  # the file alone first, so an error names the file only when the file is wrong
         by_section = _by_section(nested)
-        for key, value in (overrides or {}).items():
+        cfg = _build(by_section)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    if not overrides:
+        return cfg
+    try:  # then the overrides together (checks that tie two parameters see both)
+        for key, value in overrides.items():
             _set_dotted(by_section, key, value)
         return _build(by_section)
     except ConfigError as err:
-        raise ConfigError(f"{path}: {err}") from None
+        named = [k for k in overrides if str(err).startswith(f"{k}:")]
+        which = ", ".join(f"{k}={overrides[k]!r}" for k in (named or overrides))
+        raise ConfigError(f"override {which} (on {path}): {err}") from None
 
 
 def default() -> Config:

@@ -80,6 +80,20 @@ def test_file_errors(tmp_path):
     bad.write_text("/**:\n  ros__parameters:\n    mapper_node: {max_in_flight: -3}\n")
     with pytest.raises(ConfigError, match=rf"{re.escape(str(bad))}: mapper_node\.max_in_flight"):
         config.load(bad)
+    # A bad override is named as such, not blamed on the (valid) file it is applied to.
+    with pytest.raises(ConfigError, match=r"^override synth\.width=-5 \(on .*\): synth\.width: "
+                                          r"-5 is out of range"):
+        config.load(SHIPPED, {"synth.width": -5})
+    with pytest.raises(ConfigError, match=r"^override mapper\.lr=1 .*mapper\.lr: unknown"):
+        config.load(SHIPPED, {"mapper.lr": 1})
+    # Overrides are applied together: a check tying two parameters sees both.
+    both = config.load(SHIPPED, {"synth.room_size_min": 9.0, "synth.room_size_max": 10.0})
+    assert (both.synth.room_size_min, both.synth.room_size_max) == (9.0, 10.0)
+    with pytest.raises(ConfigError, match=r"^override synth\.room_size_min=9\.0 \(on "):
+        config.load(SHIPPED, {"synth.room_size_min": 9.0})
+    # The file's own error wins over the overrides' and names the file.
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(bad))}: mapper_node\.max_in_flight"):
+        config.load(bad, {"synth.width": -5})
     bad.write_text("/**: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         config.load(bad)
