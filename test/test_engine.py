@@ -285,6 +285,50 @@ def test_depth_fusion_averages_what_the_keyframes_measured_of_each_point():
     assert np.abs(fused - truth)[ok].max() < 0.05  # nothing pulled towards 1 m
 
 
+def test_one_visibility_pass_serves_both_fusions_of_a_view():
+    """The depth fusion's visibility test (in the view's camera) read by the keyframe
+    fusion of the same pixels gives what the keyframe fusion's own test (world points)
+    gives; a test made for other keyframes is refused, not silently misread."""
+    from types import SimpleNamespace
+
+    from neurncd_ros.core.camera import Intrinsics, backproject, look_at
+    from neurncd_ros.core.engine.views import fuse_depth, fuse_keyframes, view_visibility
+
+    rng = np.random.default_rng(5)
+    intr = Intrinsics.from_hfov(64, 48, 60.0)
+    normal = np.array([0.3, 0.1, 1.0]) / np.linalg.norm([0.3, 0.1, 1.0])
+    up = np.array([0.0, -1.0, 0.0])
+    view_pose = look_at(np.zeros(3), np.array([0.0, 0.0, 1.0]), up=up)
+    kf_poses = [look_at(np.array(e), np.array([0.1, 0.0, 2.0]), up=up)
+                for e in ([0.15, 0, 0], [-0.15, 0, 0], [0, 0.12, 0.1])]
+    noisy = lambda d: (d + rng.normal(0.0, 0.01, d.shape)).astype(np.float32)  # noqa: E731
+    kfs = [SimpleNamespace(pose=p, intrinsics=intr, depth=noisy(_plane_depth(intr, p, normal, 2.0)),
+                           embedding=rng.normal(size=(48, 64, 4)).astype(np.float16))
+           for p in kf_poses]
+    kfs[0].depth[:, :20] = 1.0  # something in front: that keyframe does not see those points
+    depth = noisy(_plane_depth(intr, view_pose, normal, 2.0))
+    depth[3, 4] = 0.0
+    seen = view_visibility(depth, intr, view_pose, kfs, 0.05)
+    assert seen.mask.sum() == depth.size - 1 and len(seen.seen) == 3
+    assert 0 < seen.seen[0][0].size < seen.seen[1][0].size  # the occluded part is left out
+    assert all(np.array_equal(a, b) for a, b in zip(
+        fuse_depth(depth, intr, view_pose, kfs, 0.05, seen),
+        fuse_depth(depth, intr, view_pose, kfs, 0.05)))
+    points, mask = backproject(depth, intr, view_pose)
+    own = rng.normal(size=(len(points), 4)).astype(np.float32)
+    shared = fuse_keyframes(points, own, kfs, 0.05, logit_channels=3, visibility=seen)
+    alone = fuse_keyframes(points, own, kfs, 0.05, logit_channels=3)
+    assert np.array_equal(mask, seen.mask)
+    # Two float32 roundings of the same test: a few points on the tolerance's edge may differ.
+    assert (shared[1] == alone[1]).mean() > 0.999 and shared[1].max() == 4.0
+    same = shared[1] == alone[1]
+    assert np.allclose(shared[0][same], alone[0][same], atol=1e-5)
+    with pytest.raises(ValueError, match="other keyframes"):
+        fuse_keyframes(points, own, kfs[:2], 0.05, logit_channels=3, visibility=seen)
+    with pytest.raises(ValueError, match="other keyframes"):
+        fuse_depth(depth, intr, view_pose, kfs[::-1], 0.05, seen)
+
+
 def test_mapper_stage_gives_discovery_the_fused_depth(cfg, backbone, frames):
     """The view's depth is the measured one averaged with the keyframes': closer to the
     exact depth of the synthetic room than the Kinect-like measurement itself."""

@@ -62,7 +62,8 @@ from ..params import param
 from ..sync import StampSync
 from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
-from .views import FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to
+from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to,
+                    view_visibility)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -411,21 +412,20 @@ class MapperStage:
         out[mask] = w
         return out
 
-    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, kfs: list,
-                      points: np.ndarray | None, mask: np.ndarray | None,
-                      logit_channels: int) -> tuple[np.ndarray, np.ndarray | None]:
+    def keyframe_fill(self, frame: Frame, backbone: np.ndarray, kfs: list, points, mask,
+                      logit_channels: int, visibility=None) -> tuple[np.ndarray, Any]:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
         stored embeddings of the views ``kfs`` (the nearest keyframes and the held recent
         frames) that see it (:func:`fuse_keyframes`); pixels without depth keep the
         frame's own. Also the (h, w) mean of the views' own entropies (fusion probabilities and a
-        ``disagreement_weight``; None otherwise)."""
+        ``disagreement_weight``; None otherwise); ``visibility`` the depth fusion's, reused."""
         if not kfs:
             return backbone, None
         out = backbone.copy()
         out[mask], _, h_views = fuse_keyframes(
             points, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
             logit_channels if self.cfg.fusion == "probabilities" else None,
-            view_entropy=self.cfg.disagreement_weight > 0, inputs=self._fusion_inputs)
+            self.cfg.disagreement_weight > 0, self._fusion_inputs, visibility)
         self._fusion_inputs.keep(kfs)
         if h_views is None:
             return out, None
@@ -451,17 +451,18 @@ class MapperStage:
         kfs = (self._nearest_keyframes(f)
                if self.cfg.fallback != "none" or self.cfg.depth_fusion else [])
         views = kfs + self._recent_views(f) if fuse or self.cfg.depth_fusion else kfs
-        view_depth = None
+        view_depth, seen, tol = None, None, self.cfg.coverage_depth_tolerance
         if self.cfg.depth_fusion:  # full size: discovery cuts its segments on it
-            view_depth, _ = fuse_depth(f.depth, f.intrinsics, f.pose, views,
-                                       self.cfg.coverage_depth_tolerance)
+            seen = view_visibility(f.depth, f.intrinsics, f.pose, views, tol)
+            view_depth, _ = fuse_depth(f.depth, f.intrinsics, f.pose, views, tol, seen)
         points, mask = backproject(depth, intr, f.pose) if views else (None, None)
         weight = (self.field_weight(kfs, points, mask, h, w) if self.cfg.fallback != "none"
                   else np.ones((h, w), np.float32))
         mean_h = None
         if fuse:
             backbone, mean_h = self.keyframe_fill(f, backbone, views, points, mask,
-                                                  spec.logit_channels)
+                                                  spec.logit_channels,
+                                                  seen if depth is f.depth else None)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)

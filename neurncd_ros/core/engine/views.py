@@ -6,7 +6,9 @@ the geometric questions that blend needs, with one visibility test
 (:func:`_visible`, column arithmetic in float32): which keyframes see a point, how
 far the field has learnt it (:func:`coverage`), the mean of
 the views' embeddings of it (:func:`fuse_keyframes`, the multi-view evidence read
-directly) and of their depths (:func:`fuse_depth`).
+directly) and of their depths (:func:`fuse_depth`). A rendering that needs both at the
+view's own resolution tests visibility once (:func:`view_visibility`) and gives the result
+to both.
 """
 
 from __future__ import annotations
@@ -107,15 +109,59 @@ def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
     return cov
 
 
+@dataclasses.dataclass(frozen=True)
+class ViewVisibility:
+    """Which keyframes see the points of a view's valid depth pixels (:func:`view_visibility`):
+    ``mask`` the (H, W) pixels with depth, ``depth`` their (N,) depths in row-major order (the
+    order of :func:`..camera.backproject`), and per keyframe, in the order given, the
+    :func:`_visible` tuple (point indices, pixel columns and rows, the keyframe's measured
+    depth there, the points' depth in the keyframe) and the keyframe centre's z in the
+    view's camera."""
+
+    mask: np.ndarray
+    depth: np.ndarray
+    seen: tuple
+    centre_z: tuple
+    keyframes: tuple
+
+    def matches(self, keyframes: list) -> bool:
+        """Whether this visibility was computed for exactly these keyframes, in this order."""
+        return len(keyframes) == len(self.keyframes) and all(
+            a is b for a, b in zip(keyframes, self.keyframes))
+
+
+def view_visibility(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
+                    keyframes: list, tolerance: float) -> ViewVisibility:
+    """The visibility test of every keyframe for the view's pixels with depth, done once in
+    the view's camera (one 3x4 map per keyframe from the view's camera to its pixels), so
+    that :func:`fuse_depth` and :func:`fuse_keyframes` of the same rendering share it."""
+    depth = np.asarray(depth, np.float32)
+    if depth.shape != intrinsics.shape:
+        raise ValueError(f"depth is {depth.shape[1]}x{depth.shape[0]} but intrinsics are "
+                         f"{intrinsics.width}x{intrinsics.height}")
+    mask = np.isfinite(depth) & (depth > 0)
+    own = depth[mask]
+    v, u = np.nonzero(mask)
+    # The view's points in its own camera, as contiguous columns (float32: depth noise is
+    # millimetres; column arithmetic is several times faster than an (N, 3) matmul).
+    x = (u.astype(np.float32) - np.float32(intrinsics.cx)) * (own / np.float32(intrinsics.fx))
+    y = (v.astype(np.float32) - np.float32(intrinsics.cy)) * (own / np.float32(intrinsics.fy))
+    cols = (x, y, own)
+    world_to_view = invert_pose(pose)
+    seen = tuple(_visible(cols, _camera_map(kf, pose), kf, tolerance) for kf in keyframes)
+    centre_z = tuple(float((world_to_view @ kf.pose)[2, 3]) for kf in keyframes)
+    return ViewVisibility(mask, own, seen, centre_z, tuple(keyframes))
+
+
 class FusionInputs:
     """Each stored view's embedding as :func:`fuse_keyframes` reads it, computed once per
     view instead of once per rendering that reads it (:func:`view_inputs`): flattened to
-    (h * w, C) float32 with the first S channels as class probabilities, and (on request)
-    the per-pixel entropy of those S channels. An entry is found by the view's stamp and
-    used only while it was made from the very embedding array the view holds, so a view
-    of the same stamp after a map reset (a bag replayed again, another bag whose stamps
-    start alike) is converted anew; :meth:`keep` drops the views a rendering no longer
-    reads, so the memory stays that of one rendering's views."""
+    (h * w + 1, C) float32 (a zero row last) with the first S channels as class
+    probabilities, and (on request) the per-pixel entropy of those S channels. An entry
+    is found by the view's stamp and used only while it was made from the very embedding
+    array the view holds, so a view of the same stamp after a map reset (a bag replayed
+    again, another bag whose stamps start alike) is converted anew; :meth:`keep` drops the
+    views a rendering no longer reads, so the memory stays that of one rendering's views."""
 
     def __init__(self) -> None:
         self._store: dict[tuple[int, int, int],
@@ -145,19 +191,39 @@ class FusionInputs:
 def view_inputs(embedding: np.ndarray, channels: int, logit_channels: int,
                 with_entropy: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """One stored view's (h, w, >= channels) embedding as the fusion reads it (see
-    :class:`FusionInputs`): (h * w, channels) float32, the first ``logit_channels`` as
-    class probabilities, and their (h * w,) entropy if asked."""
-    flat = np.array(embedding[..., :channels], np.float32).reshape(-1, channels)  # a copy
+    :class:`FusionInputs`): (h * w + 1, channels) float32, the first ``logit_channels`` as
+    class probabilities, and their (h * w + 1,) entropy if asked. The last row is zeros:
+    :func:`fuse_keyframes` points the points a view does not see at it, and adds every
+    point's row densely (a scatter into the seen points' rows costs several times more)."""
+    hw = int(np.prod(embedding.shape[:2]))
+    flat = np.zeros((hw + 1, channels), np.float32)
+    flat[:hw] = np.asarray(embedding[..., :channels]).reshape(hw, channels)
     S = int(logit_channels)
-    h = entropy(flat[:, :S]) if S and with_entropy else None
+    h = None
+    if S and with_entropy:
+        h = np.zeros(hw + 1, np.float32)
+        h[:hw] = entropy(flat[:hw, :S])
     if S:
-        flat[:, :S] = softmax(flat[:, :S])
+        flat[:hw, :S] = softmax(flat[:hw, :S])
     return flat, h
+
+
+def _seen(points: np.ndarray, keyframes: list, tolerance: float,
+          visibility: ViewVisibility | None):
+    """Per keyframe, the :func:`_visible` tuple of the world ``points``: ``visibility``'s
+    when it was computed for these keyframes and as many points, else tested here."""
+    if visibility is not None:
+        if not visibility.matches(keyframes) or len(visibility.depth) != len(points):
+            raise ValueError("visibility was computed for other keyframes or points")
+        return visibility.seen
+    cols = _columns(points)
+    return (_visible(cols, _camera_map(kf), kf, tolerance) for kf in keyframes)
 
 
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None,
-                   view_entropy: bool = False, inputs: FusionInputs | None = None
+                   view_entropy: bool = False, inputs: FusionInputs | None = None,
+                   visibility: ViewVisibility | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
@@ -173,6 +239,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     novelty cue no single frame has); None averages every channel as it is.
     ``inputs`` keeps each keyframe's probabilities between renderings (the softmax of
     a stored view is then computed once, not per rendering); None computes them here.
+    ``visibility``: the test already done for these keyframes on these points (the
+    view's depth pixels, :func:`view_visibility`); None tests here.
 
     This is the multi-view evidence the field is trained on, read directly: until
     the field has learnt a point, the view's embedding there is the mean over the
@@ -188,9 +256,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     if S:
         acc[:, :S] = softmax(acc[:, :S])
     n = np.ones(len(points), np.float32)
-    cols = _columns(points)
-    for kf in keyframes:
-        idx, ui, vi, _, _ = _visible(cols, _camera_map(kf), kf, tolerance)
+    seen = _seen(points, keyframes, tolerance, visibility)
+    for kf, (idx, ui, vi, _, _) in zip(keyframes, seen):
         if not idx.size:
             continue
         h, w = kf.depth.shape
@@ -202,9 +269,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                       + np.minimum(((ui + 0.5) * ew / w).astype(np.int64), ew - 1))
         probs, ent = (inputs.get(kf, C, S, h_sum is not None) if inputs is not None
                       else view_inputs(kf.embedding, C, S, h_sum is not None))
+        rows = np.full(len(acc), len(probs) - 1, np.int64)  # unseen: the zero row
+        rows[idx] = flat_i
         if h_sum is not None:
-            h_sum[idx] += ent[flat_i]
-        acc[idx] += np.take(probs, flat_i, axis=0)
+            h_sum += ent[rows]
+        acc += np.take(probs, rows, axis=0)
         n[idx] += 1.0
     acc /= n[:, None]
     if S:
@@ -213,7 +282,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
 
 
 def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyframes: list,
-               tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+               tolerance: float, visibility: ViewVisibility | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The view's depth averaged, pixel by pixel, with what the keyframes that see the
     same point measured of it, and how many depths were averaged per pixel (1 where no
     keyframe sees it; 0 where the view has no depth, which stays 0).
@@ -227,31 +297,24 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
     the views averaged, so the convex segments discovery cuts on the depth follow the
     surfaces rather than the noise: the small steps around a picture or a window frame
     stand out of a flat wall. Pixels without depth are not filled (no keyframe point is
-    forward-projected): discovery leaves them unlabelled as before.
+    forward-projected): discovery leaves them unlabelled as before. ``visibility``: the
+    test already done for this view and these keyframes (:func:`view_visibility`).
     """
-    depth = np.asarray(depth, np.float32)
-    mask = np.isfinite(depth) & (depth > 0)
-    own = depth[mask]
-    v, u = np.nonzero(mask)
-    # The view's points in its own camera, as contiguous columns (float32: depth noise is
-    # millimetres; column arithmetic is several times faster than an (N, 3) matmul).
-    x = (u.astype(np.float32) - np.float32(intrinsics.cx)) * (own / np.float32(intrinsics.fx))
-    y = (v.astype(np.float32) - np.float32(intrinsics.cy)) * (own / np.float32(intrinsics.fy))
+    if visibility is None:
+        visibility = view_visibility(depth, intrinsics, pose, keyframes, tolerance)
+    elif not visibility.matches(keyframes) or visibility.mask.shape != np.shape(depth):
+        raise ValueError("visibility was computed for other keyframes or another view size")
+    mask, own = visibility.mask, visibility.depth
     acc, n = own.astype(np.float64), np.ones(len(own), np.float32)
-    cols = (x, y, own)
-    world_to_view = invert_pose(pose)
-    for kf in keyframes:
-        # view camera -> keyframe pixels in one 3x4 map: (u z, v z, z) of each point.
-        idx, _, _, zk, zf = _visible(cols, _camera_map(kf, pose), kf, tolerance)
+    for (idx, _, _, zk, zf), c_z in zip(visibility.seen, visibility.centre_z):
         if not idx.size:
             continue
-        # The keyframe's centre in the view's camera: the view-z of (point - centre) is
-        # own - its z, so the estimate's view depth is own + (zk / z - 1) (own - c_z).
-        c_z = (world_to_view @ kf.pose)[2, 3]
+        # c_z is the keyframe's centre in the view's camera: the view-z of (point - centre)
+        # is own - c_z, so the estimate's view depth is own + (zk / z - 1) (own - c_z).
         acc[idx] += own[idx] + (zk / zf - 1.0) * (own[idx] - c_z)
         n[idx] += 1.0
-    out = np.zeros(depth.shape, np.float32)
+    out = np.zeros(mask.shape, np.float32)
     out[mask] = acc / n
-    count = np.zeros(depth.shape, np.float32)
+    count = np.zeros(mask.shape, np.float32)
     count[mask] = n
     return out, count
