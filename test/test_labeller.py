@@ -390,6 +390,38 @@ def test_colour_stats_and_bad_colour():
         segment_stats(seg, emb, ent, colour=rgb.astype(np.float32))
 
 
+def test_area_part_is_the_segments_metric_size():
+    intr = Intrinsics.from_hfov(W, H, 90.0)
+    seg = np.zeros((H, W), np.int32)
+    seg[:, W // 2:] = 1
+    seg[:2, :2] = -1
+    emb = np.zeros((H, W, S), np.float32)
+    ent = np.zeros((H, W), np.float32)
+    depth = np.full((H, W), 2.0, np.float32)
+    depth[:, -3:] = 0.0  # no measurement: adds nothing to segment 1's area
+    stats, _ = segment_stats(seg, emb, ent, depth=depth, intrinsics=intr)
+    px = 4.0 / (intr.fx * intr.fy)  # one pixel's footprint at 2 m
+    np.testing.assert_allclose(stats.area, [((seg == 0).sum()) * px,
+                                            ((seg == 1) & (depth > 0)).sum() * px], rtol=1e-5)
+    cfg = ModulationConfig(area_weight=0.5, colour_weight=0.0)
+    near = segment_descriptors(seg, emb, ent, cfg, depth=depth, intrinsics=intr)
+    far = segment_descriptors(seg, emb, ent, cfg, depth=2 * depth, intrinsics=intr)
+    # Twice as far, the same pixels cover four times the area.
+    np.testing.assert_allclose(far[:, -1] - near[:, -1], 0.5 * np.log10(4.0), atol=1e-3)
+    # Without depth the part keeps its width and is zero; weight 0 has no part.
+    nodepth = segment_descriptors(seg, emb, ent, cfg)
+    assert nodepth.shape == near.shape and not nodepth[:, -1].any()
+    assert segment_descriptors(seg, emb, ent, ModulationConfig(colour_weight=0.0),
+                               depth=depth, intrinsics=intr).shape[1] == near.shape[1] - 1
+    with pytest.raises(ValueError, match="depth must be"):
+        segment_stats(seg, emb, ent, depth=depth[:10], intrinsics=intr)
+    # The Discoverer gives its frame's depth to the descriptor.
+    d = Discoverer(DiscoveryConfig(), CHANNEL_TO_ID, mod_cfg=cfg)
+    d.process(depth + 0.0, intr, emb, ent)
+    areas = 10 ** (d._mem.desc[:, -1] / 0.5)
+    assert d._mem.desc.shape[1] == near.shape[1] and areas.sum() > 0.5 * (depth > 0).sum() * px
+
+
 def test_novel_clusters_close_in_descriptor_space_share_one_id():
     """Markov clustering may split one novel object into clusters (here A's two
     segments, split by hand); with novel_merge_distance they are one novel class,

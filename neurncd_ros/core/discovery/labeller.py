@@ -288,7 +288,8 @@ class Discoverer:
         # and doors leave the wall.
         segments = segment_depth(depth, intrinsics, self.seg_cfg, embedding, entropy, colour)
         segments = self._uncertain_regions(segments, entropy)
-        labels = self._label_segments(segments, embedding, entropy, colour, features)
+        labels = self._label_segments(segments, embedding, entropy, colour, features,
+                                      depth, intrinsics)
         if self.fusion is not None and pose is not None:
             labels = self.fusion.update(labels, depth, intrinsics, pose,
                                         set(self._novel_members))
@@ -339,13 +340,15 @@ class Discoverer:
 
     def _label_segments(self, segments: np.ndarray, embedding: np.ndarray,
                         entropy: np.ndarray, colour: np.ndarray | None,
-                        features: np.ndarray | None) -> np.ndarray:
+                        features: np.ndarray | None, depth: np.ndarray | None = None,
+                        intrinsics: Intrinsics | None = None) -> np.ndarray:
         """:meth:`process_segments` without counting the ids for :meth:`classes` (the
         caller counts the labels it publishes, after the label fusion)."""
         stats, mean_logit = segment_stats(
             segments, embedding, entropy, self.mod_cfg.entropy_interior,
             colour if self.mod_cfg.colour_weight > 0 else None,
-            features if self.mod_cfg.feature_weight > 0 else None)
+            features if self.mod_cfg.feature_weight > 0 else None,
+            *((depth, intrinsics) if self.mod_cfg.area_weight > 0 else (None, None)))
         desc = descriptors_from_stats(stats, mean_logit, self.mod_cfg)
         if self._mem is not None and desc.shape[1] != self._mem.desc.shape[1]:
             raise ValueError(f"segment descriptors of {desc.shape[1]} values, the memory's "
