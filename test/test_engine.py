@@ -540,9 +540,9 @@ def test_discovery_stage_gives_the_colour_to_the_descriptor_without_colour_edges
     seen = []
     orig = Discoverer._label_segments  # what process() labels the segments with
 
-    def spy(self, segments, embedding, entropy, colour=None, features=None):
+    def spy(self, segments, embedding, entropy, colour=None, features=None, *rest):
         seen.append(colour)
-        return orig(self, segments, embedding, entropy, colour, features)
+        return orig(self, segments, embedding, entropy, colour, features, *rest)
 
     monkeypatch.setattr(Discoverer, "_label_segments", spy)
     f = frames[10]
@@ -581,8 +581,8 @@ def test_backbone_features_ride_with_the_keyframes_into_each_segment_descriptor(
     widths = []
     orig = Discoverer._label_segments  # what process() labels the segments with
 
-    def spy(self, segments, embedding, entropy, colour=None, features=None):
-        out = orig(self, segments, embedding, entropy, colour, features)
+    def spy(self, segments, embedding, entropy, colour=None, features=None, *rest):
+        out = orig(self, segments, embedding, entropy, colour, features, *rest)
         widths.append((None if features is None else features.shape[-1],
                        self._mem.desc.shape[1]))
         return out
