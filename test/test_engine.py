@@ -151,6 +151,30 @@ def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbo
     assert agree > 0.6, agree
 
 
+def test_a_learnt_field_reads_the_views_one_visibility_pass(cfg, backbone, frames,
+                                                            monkeypatch):
+    """At full size the coverage of a trained field reads the depth fusion's visibility
+    test instead of testing its keyframes again, and blends the same field in."""
+    from neurncd_ros.core.engine import views as V
+
+    st = _stage(cfg, mature_iterations=20, render_scale=1.0, fallback="keyframes",
+                depth_fusion=True)
+    jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+    st.mapper.step(40)
+    calls = []
+    visible = V._visible
+    monkeypatch.setattr(V, "_visible", lambda *a: calls.append(a[2]) or visible(*a))
+    shared = st.render_view(jobs[-1])
+    tested = len(calls)
+    views = st._nearest_keyframes(jobs[-1].frame) + st._recent_views(jobs[-1].frame)
+    assert tested == len(views) >= 2, "one test per stored view, none again for the coverage"
+    monkeypatch.setattr(V.ViewVisibility, "first", lambda self, n: None)  # test anew
+    again = st.render_view(jobs[-1])
+    assert len(calls) - tested > tested, "without the shared pass the keyframes are tested twice"
+    assert shared.field_share > 0.5 and abs(shared.field_share - again.field_share) < 1e-3
+    assert np.allclose(shared.embedding, again.embedding, atol=1e-3)
+
+
 def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_ones():
     from types import SimpleNamespace
 
@@ -292,7 +316,8 @@ def test_one_visibility_pass_serves_both_fusions_of_a_view():
     from types import SimpleNamespace
 
     from neurncd_ros.core.camera import Intrinsics, backproject, look_at
-    from neurncd_ros.core.engine.views import fuse_depth, fuse_keyframes, view_visibility
+    from neurncd_ros.core.engine.views import (coverage, fuse_depth, fuse_keyframes,
+                                               view_visibility)
 
     rng = np.random.default_rng(5)
     intr = Intrinsics.from_hfov(64, 48, 60.0)
@@ -327,6 +352,18 @@ def test_one_visibility_pass_serves_both_fusions_of_a_view():
         fuse_keyframes(points, own, kfs[:2], 0.05, logit_channels=3, visibility=seen)
     with pytest.raises(ValueError, match="other keyframes"):
         fuse_depth(depth, intr, view_pose, kfs[::-1], 0.05, seen)
+    # The coverage of the first keyframes reads the same pass (the mapper stage tests its
+    # keyframes, then its recent frames); a count that is not a prefix is refused.
+    maturity = np.array([0.5, 1.0])
+    cov_shared = coverage(points, kfs[:2], maturity, 0.05, seen.first(2))
+    cov_alone = coverage(points, kfs[:2], maturity, 0.05)
+    assert (cov_shared == cov_alone).mean() > 0.999 and {0.5, 1.0} <= set(np.unique(cov_shared))
+    assert np.array_equal(cov_shared, coverage(points, kfs[:2], maturity, 0.05,
+                                               seen.first(3).first(2)))
+    with pytest.raises(ValueError, match="holds 3 keyframes, not 4"):
+        seen.first(4)
+    with pytest.raises(ValueError, match="other keyframes"):
+        coverage(points, kfs[:2], maturity, 0.05, seen)
 
 
 def test_mapper_stage_gives_discovery_the_fused_depth(cfg, backbone, frames):

@@ -30,11 +30,11 @@ field rarely matures within a short sequence, so this fusion is what the
 multi-view map contributes there (bench/results/ncd.json, rows
 ``fallback_backbone`` and ``backbone_logits``).
 
-The view's depth, which discovery cuts into convex segments, is the multi-view
-map's too (``depth_fusion``): the measured depth averaged, pixel by pixel, with what
-the nearest keyframes that see the same point measured of it (:func:`.views.fuse_depth`),
-at full size. The sensor's noise, independent between viewpoints, shrinks, and the
-small depth steps of a picture or a window frame on a wall stand out of it.
+The view's depth, which discovery cuts into convex segments, is the multi-view map's too
+(``depth_fusion``): the measured depth averaged, pixel by pixel, with what the nearest
+keyframes that see the same point measured of it (:func:`.views.fuse_depth`), at full
+size. The sensor's noise, independent between viewpoints, shrinks, and the small depth
+steps of a picture or a window frame on a wall stand out of it.
 
 Flow control: at most ``max_in_flight`` views are published and not yet
 labelled (the node sees labels come back on /neurncd/labels); the renderer
@@ -395,18 +395,18 @@ class MapperStage:
             return [r for r in self._recent if r.stamp_ns != frame.stamp_ns]
 
     def field_weight(self, kfs: list, points: np.ndarray | None, mask: np.ndarray | None,
-                     height: int, width: int) -> np.ndarray:
+                     height: int, width: int, visibility=None) -> np.ndarray:
         """(height, width) weight of the field against the backbone (see module doc), from
         the view's nearest keyframes ``kfs`` and its back-projected depth ``points`` at
-        the ``mask`` pixels."""
-        maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations)
-                             for k in kfs])
+        the ``mask`` pixels; ``visibility`` the depth fusion's test, reused."""
+        maturity = np.array([min(1.0, k.iterations / self.cfg.mature_iterations) for k in kfs])
         # A weight is at most the best maturity / full_coverage; below min_field_weight
         # nothing is rendered, so while no keyframe is that mature no test is needed.
         if (not np.any(maturity > 0) or maturity.max() / self.cfg.full_coverage
                 < self.cfg.min_field_weight):
             return np.zeros((height, width), np.float32)
-        cov = coverage(points, kfs, maturity, self.cfg.coverage_depth_tolerance)
+        cov = coverage(points, kfs, maturity, self.cfg.coverage_depth_tolerance,
+                       None if visibility is None else visibility.first(len(kfs)))
         w = np.clip(cov / self.cfg.full_coverage, 0.0, 1.0).astype(np.float32)
         out = np.full((height, width), float(w.mean()) if w.size else 0.0, np.float32)
         out[mask] = w
@@ -456,13 +456,13 @@ class MapperStage:
             seen = view_visibility(f.depth, f.intrinsics, f.pose, views, tol)
             view_depth, _ = fuse_depth(f.depth, f.intrinsics, f.pose, views, tol, seen)
         points, mask = backproject(depth, intr, f.pose) if views else (None, None)
-        weight = (self.field_weight(kfs, points, mask, h, w) if self.cfg.fallback != "none"
-                  else np.ones((h, w), np.float32))
+        seen = seen if depth is f.depth else None  # the full-size test, at render_scale 1
+        weight = (self.field_weight(kfs, points, mask, h, w, seen)
+                  if self.cfg.fallback != "none" else np.ones((h, w), np.float32))
         mean_h = None
         if fuse:
             backbone, mean_h = self.keyframe_fill(f, backbone, views, points, mask,
-                                                  spec.logit_channels,
-                                                  seen if depth is f.depth else None)
+                                                  spec.logit_channels, seen)
         iterations = mapper.iterations
         emb = backbone.copy()
         weight = np.where(weight >= self.cfg.min_field_weight, weight, 0.0)

@@ -92,20 +92,25 @@ def _visible(cols: tuple[np.ndarray, np.ndarray, np.ndarray], M: np.ndarray, kf,
 
 
 def coverage(points: np.ndarray, keyframes: list, maturity: np.ndarray,
-             tolerance: float) -> np.ndarray:
+             tolerance: float, visibility: ViewVisibility | None = None) -> np.ndarray:
     """Per point, the highest maturity among the keyframes that see it.
 
     A keyframe sees a world point if it projects into its image in front of
     the camera and the keyframe's measured depth there agrees (within
     ``tolerance`` + 3 % of the depth): visible, not occluded.
+    ``visibility``: that test already done for these keyframes on these points
+    (:func:`view_visibility`, :meth:`ViewVisibility.first`); None tests here.
     """
     cov = np.zeros(len(points))
-    cols = _columns(points)
-    for kf, m in zip(keyframes, maturity):
-        if m <= 0:
-            continue
-        idx = _visible(cols, _camera_map(kf), kf, tolerance)[0]
-        cov[idx] = np.maximum(cov[idx], m)
+    if visibility is None:
+        cols = _columns(points)
+        seen = (_visible(cols, _camera_map(kf), kf, tolerance) if m > 0 else None
+                for kf, m in zip(keyframes, maturity))
+    else:
+        seen = _seen(points, keyframes, tolerance, visibility)
+    for m, vis in zip(maturity, seen):
+        if m > 0:
+            cov[vis[0]] = np.maximum(cov[vis[0]], m)
     return cov
 
 
@@ -128,6 +133,14 @@ class ViewVisibility:
         """Whether this visibility was computed for exactly these keyframes, in this order."""
         return len(keyframes) == len(self.keyframes) and all(
             a is b for a, b in zip(keyframes, self.keyframes))
+
+    def first(self, n: int) -> ViewVisibility:
+        """The test of the first ``n`` keyframes alone (the mapper stage tests its nearest
+        keyframes and then the held recent frames; its coverage reads the keyframes)."""
+        if not 0 <= n <= len(self.keyframes):
+            raise ValueError(f"visibility holds {len(self.keyframes)} keyframes, not {n}")
+        return dataclasses.replace(self, seen=self.seen[:n], centre_z=self.centre_z[:n],
+                                   keyframes=self.keyframes[:n])
 
 
 def view_visibility(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray,
