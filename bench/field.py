@@ -29,6 +29,12 @@ bench/results/field.json and bench/results/field.png.
                                                     # 4 eval frames at 40x30 rays
     .venv/bin/python bench/field.py --embedding gt  # noisy one-hot GT logits, no backbone
     .venv/bin/python bench/field.py --skip-reference  # fast backend only: field_fast.json
+    .venv/bin/python bench/field.py --skip-reference \\
+        --set mapper.fast.embedding_confidence_power=2 --name field_fast_power2
+
+``--set`` changes a parameter of the mapper's configuration (``mapper``,
+``mapper.<backend>`` and ``keyframes`` sections; the backend, its threads and the
+seed stay the benchmark's own).
 """
 
 from __future__ import annotations
@@ -49,10 +55,11 @@ from tqdm import tqdm
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from neurncd_ros import config  # noqa: E402
 from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.camera import camera_directions  # noqa: E402
 from neurncd_ros.synth.generator import SynthConfig, generate  # noqa: E402
-from neurncd_ros.core.field.mapper import Mapper, MapperConfig  # noqa: E402
+from neurncd_ros.core.field.mapper import Mapper  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 FAST_CHECKPOINTS = [2, 4, 6, 8, 10, 15, 20, 30, 40, 60, 90, 120]
@@ -140,10 +147,15 @@ def backbone_known_acc(frames, embs, channel_to_id) -> float:
 
 
 def run_stream(backend: str, frames, embs, held, checkpoints, eval_set, channel_to_id,
-               threads: int, fps: float) -> list[dict]:
-    """Feed frames at ``fps`` on the training clock while training; evaluate at checkpoints."""
-    cfg = MapperConfig(backend=backend, num_threads=threads, seed=0)
-    mapper = Mapper(cfg, embs[0].shape[-1])
+               threads: int, fps: float, base: config.Config | None = None) -> list[dict]:
+    """Feed frames at ``fps`` on the training clock while training; evaluate at checkpoints.
+
+    ``base``: the configuration whose mapper, backend and keyframe sections are used
+    (default: the shipped defaults); backend, threads and seed are set here."""
+    base = base or config.default()
+    nested = base.to_nested()
+    nested["mapper"].update(backend=backend, num_threads=threads, seed=0)
+    mapper = Mapper.from_config(config.from_nested(nested), embs[0].shape[-1])
     eval_frames = [frames[i] for i in eval_set]
     eval_embs = [embs[i] for i in eval_set]
     curve, nxt, clock, admitted = [], 0, 0.0, 0
@@ -242,7 +254,12 @@ def main() -> None:
                     help="results file stem (default: field, or field_fast with "
                     "--skip-reference, so a run without the reference never replaces the "
                     "full record)")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="change a mapper parameter (repeatable; give the run its own --name)")
     args = ap.parse_args()
+    if args.set and args.name is None:
+        raise SystemExit("--set changes the configuration: give the run its own --name")
+    run_cfg = config.load(None, config.parse_overrides(args.set))
     fast_cps, ref_cps = FAST_CHECKPOINTS, REFERENCE_CHECKPOINTS
     if args.quick:
         global EVAL_STRIDE
@@ -264,21 +281,21 @@ def main() -> None:
           f"{len(eval_set)} evaluated; embedding {source}; backbone known acc {base:.3f}")
 
     curves = {"fast": run_stream("fast", frames, embs, held, fast_cps, eval_set,
-                                 channel_to_id, args.threads, cfg.fps)}
+                                 channel_to_id, args.threads, cfg.fps, run_cfg)}
     # High-water mark so far: the fast mapper plus this script's 300 frames and their
     # embeddings (a conservative bound for the mapper alone); the reference comes later.
     fast_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
     if not args.skip_reference:
         torch.set_num_threads(args.reference_threads)
         curves["reference"] = run_stream("reference", frames, embs, held, ref_cps, eval_set,
-                                         channel_to_id, args.reference_threads, cfg.fps)
+                                         channel_to_id, args.reference_threads, cfg.fps, run_cfg)
 
     fast = curves["fast"]
     res: dict = {
         "embedding": source, "frames": len(frames), "eval_frames": len(eval_set),
         "eval_rays_per_frame": int(eval_rays(frames[0])[0].shape[0]),
         "threads": args.threads, "reference_threads": args.reference_threads,
-        "quick": bool(args.quick),
+        "quick": bool(args.quick), "set": args.set,
         "fast_psnr_120s": at(fast, 120, "psnr_depth"),
         "fast_depth_err_cm_120s": at(fast, 120, "depth_err_cm_depth"),
         "fast_agreement_120s": at(fast, 120, "agreement_depth"),

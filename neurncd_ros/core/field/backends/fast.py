@@ -55,8 +55,9 @@ class FastConfig:
     fine_samples: int = param(24, "importance samples per ray, evaluated by the full field, "
                               "when a view is rendered without measured depth", lo=1, hi=1024)
     embedding_confidence_power: float = param(
-        2.0, "weight each ray's embedding loss by (1 - backbone entropy / log S)^power: where "
-        "views disagree the field follows the confident ones (0 = plain mean)",
+        0.0, "weight each ray's embedding loss by (1 - backbone entropy / log S)^power, so "
+        "that where views disagree the field follows the confident ones; 0 (plain mean) "
+        "keeps the backbone's uncertainty on novel objects, which power 2 sharpens away",
         lo=0.0, hi=16.0)
     embedding_loss: str = param(
         "kl", "what trains the embedding head: 'kl' against the backbone's logits "
