@@ -31,10 +31,17 @@ bench/results/field.json and bench/results/field.png.
     .venv/bin/python bench/field.py --skip-reference  # fast backend only: field_fast.json
     .venv/bin/python bench/field.py --skip-reference \\
         --set mapper.fast.embedding_confidence_power=2 --name field_fast_power2
+    .venv/bin/python bench/field.py --skip-reference \\
+        --set backbone.features=true --name field_fast_features
 
 ``--set`` changes a parameter of the mapper's configuration (``mapper``,
 ``mapper.<backend>`` and ``keyframes`` sections; the backend, its threads and the
-seed stay the benchmark's own).
+seed stay the benchmark's own) or ``backbone.features``: the embedding then carries
+the backbone's penultimate features after its logits, the field distils them
+(``mapper.distill_features``), and each checkpoint adds ``feature_error``: the
+rendered features' squared error relative to the held-out frame's own features'
+squared norm (0 = exact, 1 = a field that renders zeros).
+
 """
 
 from __future__ import annotations
@@ -77,17 +84,20 @@ def gt_embedding(semantic: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return emb
 
 
-def embeddings(frames, mode: str) -> tuple[list[np.ndarray], np.ndarray, str]:
-    """Per-frame logits (float16 to save memory), channel_to_id, and what produced them."""
-    if mode in ("auto", "backbone"):
+def embeddings(frames, mode: str, features: bool = False
+               ) -> tuple[list[np.ndarray], np.ndarray, str]:
+    """Per-frame logits (float16 to save memory), channel_to_id, and what produced them;
+    ``features``: the backbone's penultimate features after the logits."""
+    if mode in ("auto", "backbone") or features:
         try:
             from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
-            bb = load_backbone(BackboneConfig())
-            out = [bb.predict(f.rgb, f.depth).astype(np.float16)
+            bb = load_backbone(BackboneConfig(features=features))
+            out = [bb.embed(f.rgb, f.depth).astype(np.float16)
                    for f in tqdm(frames, desc="backbone", leave=False)]
-            return out, np.asarray(bb.channel_to_id), "backbone(default)"
+            return (out, np.asarray(bb.channel_to_id),
+                    "backbone(default" + (", features)" if features else ")"))
         except (ImportError, ValueError, OSError) as exc:
-            if mode == "backbone":
+            if mode == "backbone" or features:
                 raise
             print(f"backbone unavailable ({exc}); using noisy ground-truth logits")
     rng = np.random.default_rng(0)
@@ -116,6 +126,8 @@ def evaluate(mapper: Mapper, frames, embs, channel_to_id, use_depth: bool = Fals
     ``use_depth``: render with the held-out view's measured depth (never trained on;
     only its depth places the samples)."""
     psnr, derr, agree, known_ok, known_n = [], [], [], 0, 0
+    S = len(channel_to_id)
+    feat_err, feat_norm = 0.0, 0.0
     for f, e in zip(frames, embs):
         o, d, u, v = eval_rays(f)
         out = mapper.render_rays(o, d, f.depth[v, u] if use_depth else None)
@@ -124,15 +136,22 @@ def evaluate(mapper: Mapper, frames, embs, channel_to_id, use_depth: bool = Fals
         z = f.depth[v, u]
         ok = z > 0
         derr.append(np.abs(out["depth"][ok] - z[ok]))
-        pred = out["embedding"].argmax(-1)
-        agree.append(float(np.mean(pred == e[v, u].astype(np.float32).argmax(-1))))
+        pred = out["embedding"][:, :S].argmax(-1)
+        target = e[v, u].astype(np.float32)
+        agree.append(float(np.mean(pred == target[:, :S].argmax(-1))))
+        if out["embedding"].shape[1] > S:  # distilled features: where the view has depth
+            feat_err += float(((out["embedding"][ok, S:] - target[ok, S:]) ** 2).sum())
+            feat_norm += float((target[ok, S:] ** 2).sum())
         gt = f.semantic[v, u]
         known = np.isin(gt, classes.KNOWN_IDS)
         known_ok += int((channel_to_id[pred] == gt)[known].sum())
         known_n += int(known.sum())
-    return {"psnr": float(np.mean(psnr)), "depth_err_cm": 100 * float(np.median(
+    res = {"psnr": float(np.mean(psnr)), "depth_err_cm": 100 * float(np.median(
         np.concatenate(derr))), "agreement": float(np.mean(agree)),
         "known_acc": known_ok / max(known_n, 1)}
+    if feat_norm > 0:
+        res["feature_error"] = feat_err / feat_norm
+    return res
 
 
 def backbone_known_acc(frames, embs, channel_to_id) -> float:
@@ -141,7 +160,8 @@ def backbone_known_acc(frames, embs, channel_to_id) -> float:
         _, _, u, v = eval_rays(f)
         gt = f.semantic[v, u]
         known = np.isin(gt, classes.KNOWN_IDS)
-        ok += int((channel_to_id[e[v, u].astype(np.float32).argmax(-1)] == gt)[known].sum())
+        logits = e[v, u, : len(channel_to_id)].astype(np.float32)
+        ok += int((channel_to_id[logits.argmax(-1)] == gt)[known].sum())
         n += int(known.sum())
     return ok / max(n, 1)
 
@@ -155,7 +175,8 @@ def run_stream(backend: str, frames, embs, held, checkpoints, eval_set, channel_
     base = base or config.default()
     nested = base.to_nested()
     nested["mapper"].update(backend=backend, num_threads=threads, seed=0)
-    mapper = Mapper.from_config(config.from_nested(nested), embs[0].shape[-1])
+    S = len(channel_to_id)
+    mapper = Mapper.from_config(config.from_nested(nested), S, embs[0].shape[-1] - S)
     eval_frames = [frames[i] for i in eval_set]
     eval_embs = [embs[i] for i in eval_set]
     curve, nxt, clock, admitted = [], 0, 0.0, 0
@@ -188,6 +209,7 @@ def run_stream(backend: str, frames, embs, held, checkpoints, eval_set, channel_
                    f"kf={row['keyframes']:3d} psnr={row['psnr']:5.2f} "
                    f"depth={row['depth_err_cm']:5.1f}cm agree={row['agreement']:.3f} "
                    f"known={row['known_acc']:.3f}"
+                   + (f" features={row['feature_error']:.3f}" if "feature_error" in row else "")
                    + (f" | depth-guided psnr={row['psnr_depth']:5.2f} agree="
                       f"{row['agreement_depth']:.3f} known={row['known_acc_depth']:.3f}"
                       if "psnr_depth" in row else ""))
@@ -271,7 +293,7 @@ def main() -> None:
     cfg = SynthConfig()
     frames = list(tqdm(generate(args.seed, args.frames, cfg), total=args.frames,
                        desc="synth", leave=False))
-    embs, channel_to_id, source = embeddings(frames, args.embedding)
+    embs, channel_to_id, source = embeddings(frames, args.embedding, run_cfg.backbone.features)
     held = set(range(5, len(frames), 10))
     step = max(1, len(held) // args.eval_frames)
     eval_set = sorted(held)[::step][:args.eval_frames]
@@ -305,6 +327,9 @@ def main() -> None:
         "fast_agreement_free_120s": at(fast, 120, "agreement"),
         "fast_known_acc_free_120s": at(fast, 120, "known_acc"),
         "fast_iterations_120s": at(fast, 120, "iterations"),
+        **({"fast_feature_error_120s": at(fast, 120, "feature_error_depth"),
+            "fast_feature_error_free_120s": at(fast, 120, "feature_error")}
+           if "feature_error" in fast[0] else {}),
         "fast_last_t": fast[-1]["t"],
         "backbone_known_acc": base,
     }
@@ -331,7 +356,8 @@ def main() -> None:
     res["reference_peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
     for name, curve in curves.items():
         for key in ("t", "iterations", "psnr", "depth_err_cm", "agreement", "known_acc",
-                    "psnr_depth", "depth_err_cm_depth", "agreement_depth", "known_acc_depth"):
+                    "psnr_depth", "depth_err_cm_depth", "agreement_depth", "known_acc_depth",
+                    "feature_error", "feature_error_depth"):
             if key in curve[0]:
                 res[f"{name}_curve_{key}"] = [r[key] for r in curve]
     res["cores"] = os.cpu_count()

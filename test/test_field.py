@@ -181,7 +181,8 @@ def _known_agreement(m: Mapper, frames) -> float:
         known = np.isin(f.semantic, classes.KNOWN_IDS)
         target = np.vectorize(classes.ID_TO_CHANNEL.get, otypes=[np.int64])(
             np.where(known, f.semantic, classes.KNOWN_IDS[0]))
-        agree += int((out["embedding"].argmax(-1) == target)[known].sum())
+        logits = out["embedding"][..., : classes.NUM_KNOWN]  # any features follow
+        agree += int((logits.argmax(-1) == target)[known].sum())
         total += int(known.sum())
         h = out["entropy"]
         assert h.dtype == np.float32 and h.min() >= 0 and h.max() <= math.log(9) + 1e-5
@@ -252,6 +253,90 @@ def test_save_load_renders_identically_and_resumes(synthetic, tmp_path):
     emb, ent = m2.query(np.array([[0.5, 0.5, 0.5], [1.0, 1.0, 0.1]]))
     assert emb.shape == (2, 9) and ent.shape == (2,)
     assert np.isfinite(m2.step(2)["total"]) and m2.iterations == 7
+
+
+FEATURES = 6  # feature channels of the stand-in backbone's penultimate map
+
+
+def _class_features() -> np.ndarray:
+    """A fixed non-negative feature vector per NYU-13 id (0 = void), as a ReLU layer's."""
+    return np.abs(np.random.default_rng(7).normal(0.0, 3.0, (classes.NUM_CLASSES + 1,
+                                                             FEATURES))).astype(np.float32)
+
+
+def _with_features(semantic: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Logits and features of the backbone stand-in: the class's feature vector + noise."""
+    feats = _class_features()[semantic] + rng.normal(0.0, 0.3, semantic.shape + (FEATURES,))
+    return np.concatenate([_gt_embedding(semantic, rng), feats.astype(np.float32)], axis=-1)
+
+
+def _fit_features(frames, steps: int, distill: bool) -> Mapper:
+    rng = np.random.default_rng(0)
+    m = Mapper(MapperConfig(seed=2, distill_features=distill), classes.NUM_KNOWN,
+               backend_cfg=FastConfig(rays_per_iteration=1024), feature_channels=FEATURES)
+    for i, f in enumerate(frames):
+        if i % 6 != 3:
+            m.add_keyframe(f, _with_features(f.semantic, rng), force=True)
+    if steps:
+        assert "features" in m.step(steps)
+    return m
+
+
+def test_feature_error_is_relative_and_zero_without_features():
+    f = torch.tensor([[1.0, 2.0], [0.0, 3.0]])
+    assert float(losses.feature_error(f, torch.zeros_like(f))) == pytest.approx(1.0)
+    assert float(losses.feature_error(f, f)) == 0.0
+    # the same relative error whatever the features' scale
+    assert float(losses.feature_error(100 * f, 100 * (f + 0.1))) == pytest.approx(
+        float(losses.feature_error(f, f + 0.1)), rel=1e-5)
+    none = torch.zeros(2, 0)
+    out = losses.feature_error(none, torch.zeros(2, 0, requires_grad=True))
+    assert float(out) == 0.0 and out.requires_grad
+
+
+def test_field_distils_the_backbone_features_beside_the_logits(synthetic, tmp_path):
+    """With feature channels in the keyframes' embedding (backbone.features) the field
+    learns them too: held-out views render logits then features, the features near the
+    class's feature vector (relative error far below the 1 of a field that renders
+    zeros), the known classes as well as without features, the entropy of the logits
+    alone. distill_features false renders the logits only; a map saved before the option
+    existed loads as such."""
+    m = _fit_features(synthetic, 150, distill=True)
+    assert m.field_channels == classes.NUM_KNOWN + FEATURES
+    table = _class_features()
+    num = den = 0.0
+    for i, f in enumerate(synthetic):
+        if i % 6 != 3:
+            continue
+        out = m.render(f.pose, f.intrinsics, depth=f.depth)
+        assert out["embedding"].shape == f.depth.shape + (classes.NUM_KNOWN + FEATURES,)
+        np.testing.assert_allclose(out["entropy"], losses.entropy(
+            out["embedding"][..., : classes.NUM_KNOWN]), atol=1e-5)
+        sel = (f.semantic > 0) & (f.depth > 0)
+        target = table[f.semantic[sel]]
+        num += float(((out["embedding"][..., classes.NUM_KNOWN:][sel] - target) ** 2).sum())
+        den += float((target ** 2).sum())
+    assert num / den < 0.2, num / den  # measured 0.044
+    assert _known_agreement(m, synthetic) > 0.9  # measured 0.96, as without features
+    emb, ent = m.query(np.array([[0.5, 0.5, 0.5]]))
+    assert emb.shape == (1, classes.NUM_KNOWN + FEATURES) and ent.shape == (1,)
+
+    plain = _fit_features(synthetic[:8], 2, distill=False)
+    assert plain.field_channels == classes.NUM_KNOWN
+    f = synthetic[3]
+    assert plain.render(f.pose, f.intrinsics, 6, 8)["embedding"].shape == (6, 8, 9)
+    # A map file from before distill_features: its mapper section lacks the key.
+    plain.save(tmp_path / "old.pt")
+    state = torch.load(tmp_path / "old.pt", weights_only=True)
+    del state["config"]["mapper"]["distill_features"]
+    torch.save(state, tmp_path / "old.pt")
+    old = Mapper.load(tmp_path / "old.pt")
+    assert old.field_channels == classes.NUM_KNOWN and old.feature_channels == FEATURES
+    m.save(tmp_path / "new.pt")
+    back = Mapper.load(tmp_path / "new.pt")
+    a = m.render(f.pose, f.intrinsics, 6, 8, depth=f.depth)
+    b = back.render(f.pose, f.intrinsics, 6, 8, depth=f.depth)
+    assert np.array_equal(a["embedding"], b["embedding"])
 
 
 def test_background_training_while_adding_and_rendering(synthetic):

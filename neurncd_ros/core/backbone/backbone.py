@@ -77,8 +77,9 @@ class BackboneConfig:
                                  "false = the known-class logits alone")
     features: bool = param(False, "kind=default: append the net's penultimate feature map "
                            "(the last decoder stage's 20 channels) to the embedding after "
-                           "the logits (issue 11, direction 1: the mapper's keyframe fusion "
-                           "averages them, discovery pools them per segment, "
+                           "the logits (issue 11, direction 1: the field distils them, "
+                           "mapper.distill_features, the mapper's keyframe fusion averages "
+                           "them, discovery pools them per segment, "
                            "modulation.feature_weight); the embedding topic grows 29/9 times, "
                            "so pair it with embedding_node.output_scale 0.5")
     device: str = param("cpu", "torch device the network runs on", choices=("cpu", "cuda"))

@@ -208,7 +208,7 @@ class MapperStage:
     # ------------------------------------------------------------ the field
     def _ensure_mapper(self, spec: EmbeddingSpec):
         if self.mapper is None:
-            # The field learns the logits; features ride along with the keyframes.
+            # The field learns the logits (and features: distill_features), kept by keyframes.
             self.mapper = self._make_mapper(spec.logit_channels, spec.feature_channels)
             self.spec = spec
             if self.online:
@@ -475,7 +475,7 @@ class MapperStage:
             # checks ``cancel`` between chunks (a node stops promptly even mid-render).
             field = mapper.render_rays(origins, dirs, z, cancel=cancel)["embedding"]
             wt = weight[sel][:, None]
-            S = field.shape[1]  # the field renders the logits; features stay the fusion's
+            S = field.shape[1]  # the logits, then any features the field distils
             emb[sel, :S] = wt * field + (1.0 - wt) * backbone[sel, :S]
         emb = np.ascontiguousarray(emb, np.float32)
         ent = entropy(emb[..., : spec.logit_channels])

@@ -63,6 +63,20 @@ def embedding_term(kind: str, target: torch.Tensor, rendered_logits: torch.Tenso
     raise ValueError(f"embedding_loss must be one of {EMBEDDING_LOSSES}, got {kind!r}")
 
 
+def feature_error(target: torch.Tensor, rendered: torch.Tensor) -> torch.Tensor:
+    """L_f: squared error of the rendered backbone features (R, F) relative to the
+    batch's mean squared feature norm, sum ||f_hat - f||^2 / sum ||f||^2.
+
+    The penultimate features have no fixed scale (they are whatever the backbone's last
+    decoder stage outputs), so the error is relative: 1 for a field that renders zeros,
+    0 for a perfect fit, independent of the backbone. 0 (kept in the graph) when there
+    are no feature channels.
+    """
+    if target.shape[-1] == 0:
+        return rendered.sum() * 0.0
+    return ((rendered - target) ** 2).sum() / (target ** 2).sum().clamp(min=1e-8)
+
+
 def depth_l1(depth: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean |rendered - measured| z-depth over rays with a measurement (target > 0)."""
     valid = target > 0

@@ -77,6 +77,15 @@ class MapperConfig:
                          "'reference' (settings in mapper.<backend>)", choices=backends.names)
     lambda_embedding: float = param(0.5, "weight of the embedding KL loss L_e against the "
                                     "photometric loss", lo=0.0, hi=100.0)
+    distill_features: bool = param(True, "when the embedding carries the backbone's "
+                                   "penultimate features (backbone.features), the field "
+                                   "learns them beside the logits and renders both; false: "
+                                   "it learns the logits alone and the features only ride "
+                                   "along with the keyframes for the mapper stage's keyframe "
+                                   "fusion")
+    lambda_features: float = param(0.5, "weight of the feature loss L_f (squared error "
+                                   "relative to the features' mean squared norm) when the "
+                                   "field distils features", lo=0.0, hi=100.0)
     near: float = param(0.05, "closest distance rendered from a camera", lo=0.0, hi=10.0,
                         unit="m")
     max_depth: float = param(10.0, "measured depth beyond this is ignored", lo=0.1,
@@ -114,12 +123,13 @@ class Mapper:
     """Online Embedding-NeRF: keyframe buffer, background training, rendering.
 
     ``Mapper(cfg, channels, keyframes, backend_cfg, feature_channels)``: the
-    ``mapper`` section, the embedding channels S the field learns and renders, the
-    ``keyframes`` section, the backend's own section (defaults where None), and
-    how many feature channels follow the S logits in a keyframe's embedding
-    (``backbone.features``: kept with the keyframe for the mapper stage's keyframe
-    fusion, not learnt by the field). :meth:`from_config` takes them from a whole
-    configuration.
+    ``mapper`` section, the embedding logits S, the ``keyframes`` section, the
+    backend's own section (defaults where None), and how many feature channels
+    follow the S logits in a keyframe's embedding (``backbone.features``: kept with
+    the keyframe for the mapper stage's keyframe fusion). The field learns and
+    renders the S logits and, with ``distill_features``, the F features after them
+    (:attr:`field_channels`); the entropy is always that of the S logits.
+    :meth:`from_config` takes them from a whole configuration.
     """
 
     def __init__(self, cfg: MapperConfig | None = None, channels: int = 9,
@@ -132,6 +142,8 @@ class Mapper:
             raise ValueError(f"feature_channels must be >= 0, got {feature_channels}")
         self.channels = int(channels)
         self.feature_channels = int(feature_channels)
+        self.field_channels = self.channels + (self.feature_channels
+                                               if self.cfg.distill_features else 0)
         self._backend = backends.get(self.cfg.backend)
         self.backend_cfg = backend_cfg if backend_cfg is not None else self._backend.config()
         if not isinstance(self.backend_cfg, self._backend.config):
@@ -162,8 +174,8 @@ class Mapper:
     def _init_model(self) -> None:
         self._gen = torch.Generator().manual_seed(self.cfg.seed)
         self._rng = np.random.default_rng(self.cfg.seed)
-        self.model: FieldModel = self._backend.model(self.backend_cfg, self.channels, self.cfg,
-                                                     self._gen)
+        self.model: FieldModel = self._backend.model(self.backend_cfg, self.field_channels,
+                                                     self.cfg, self._gen)
         self._opt = torch.optim.Adam(self.model.param_groups())
         self._lo: np.ndarray | None = None
         self._hi: np.ndarray | None = None
@@ -220,7 +232,8 @@ class Mapper:
         ``embedding`` (h, w, S [+ feature_channels]) float logits [and features] may be
         coarser than the frame (same aspect): it is kept at its resolution and each
         training ray reads the embedding pixel covering its frame pixel (see
-        ``keyframes``); the field learns the S logits.
+        ``keyframes``); the field learns the S logits (and, with ``distill_features``,
+        the features).
         """
         frame.validate()
         emb = check_embedding(frame, embedding)
@@ -245,11 +258,12 @@ class Mapper:
     def _batch(self) -> RayBatch:
         r = self.buffer.sample_rays(self.model.rays_per_iteration, self._rng)
         depth = np.where(r["depth"] <= self.cfg.max_depth, r["depth"], 0.0)
+        S, C = self.channels, self.field_channels
         return RayBatch(torch.from_numpy(r["origins"]).float(),
                         torch.from_numpy(r["dirs"]).float(), torch.from_numpy(r["rgb"]),
                         torch.from_numpy(depth.astype(np.float32)),
-                        torch.from_numpy(np.ascontiguousarray(
-                            r["embedding"][:, : self.channels])))
+                        torch.from_numpy(np.ascontiguousarray(r["embedding"][:, :S])),
+                        torch.from_numpy(np.ascontiguousarray(r["embedding"][:, S:C])))
 
     def _near_far(self, origins: torch.Tensor, dirs: torch.Tensor):
         lo = torch.tensor(self._lo, dtype=torch.float32)
@@ -422,12 +436,15 @@ class Mapper:
         rgb = torch.cat(parts["rgb"]).clamp(0.0, 1.0)
         emb = torch.cat(parts["embedding"])
         return {"rgb": rgb.numpy(), "depth": torch.cat(parts["depth"]).numpy(),
-                "embedding": emb.numpy(), "entropy": L.entropy_torch(emb).numpy()}
+                "embedding": emb.numpy(),
+                "entropy": L.entropy_torch(emb[:, : self.channels]).numpy()}
 
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, height: int | None = None,
                width: int | None = None, depth: np.ndarray | None = None,
                cancel: threading.Event | None = None) -> dict[str, np.ndarray]:
-        """Render a view: rgb (H, W, 3) in [0, 1], depth (H, W), embedding (H, W, S), entropy.
+        """Render a view: rgb (H, W, 3) in [0, 1], depth (H, W), embedding (H, W,
+        :attr:`field_channels`: the S logits, then any distilled features), entropy (of
+        the logits).
 
         With ``height``/``width`` the camera is rendered at that resolution
         (intrinsics scaled accordingly). ``depth``: the view's measured depth
@@ -462,7 +479,8 @@ class Mapper:
 
     @torch.no_grad()
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Embedding logits (N, S) and entropy (N,) of the field at world points (N, 3)."""
+        """Embedding (N, :attr:`field_channels`: logits, then any distilled features) and
+        the logits' entropy (N,) of the field at world points (N, 3)."""
         pts = np.asarray(points, dtype=np.float32)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"points must be (N, 3), got shape {pts.shape}")
@@ -471,8 +489,8 @@ class Mapper:
         model, _, _ = self._snapshot()
         embs = [model.query(torch.from_numpy(pts[s:s + 65536]))
                 for s in range(0, len(pts), 65536)]
-        emb = torch.cat(embs) if embs else torch.zeros(0, self.channels)
-        return emb.numpy(), L.entropy_torch(emb).numpy()
+        emb = torch.cat(embs) if embs else torch.zeros(0, self.field_channels)
+        return emb.numpy(), L.entropy_torch(emb[:, : self.channels]).numpy()
 
     # ------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
@@ -507,6 +525,8 @@ class Mapper:
                              f"version {SAVE_VERSION} (which records the backend's settings): "
                              "build the map again")
         sections = {k: dict(v) for k, v in state["config"].items()}
+        # Maps saved before mapper.distill_features existed never distilled features.
+        sections["mapper"].setdefault("distill_features", False)
         backend = sections["mapper"]["backend"]
         classes = {"mapper": MapperConfig, "keyframes": KeyframeConfig,
                    "backend": backends.get(backend).config}

@@ -16,7 +16,7 @@ import dataclasses
 import torch
 from torch import nn
 
-from .. import renderer
+from .. import losses, renderer
 from ..fields import EmbeddingField
 
 
@@ -29,12 +29,23 @@ class RayBatch:
     rgb: torch.Tensor  # (R, 3) in [0, 1]
     depth: torch.Tensor  # (R,) metres, 0 = none
     embedding: torch.Tensor  # (R, S) backbone logits
+    features: torch.Tensor  # (R, F) backbone features the field learns (F may be 0)
 
     def split(self, size: int) -> list["RayBatch"]:
         """Consecutive micro-batches of at most ``size`` rays."""
         n = self.origins.shape[0]
         return [RayBatch(*(getattr(self, f.name)[s:s + size]
                            for f in dataclasses.fields(RayBatch))) for s in range(0, n, size)]
+
+
+def distillation(kind: str, batch: RayBatch, rendered: torch.Tensor,
+                 confidence_power: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The embedding losses of rendered (R, S + F) channels: L_e of the first S against
+    the batch's logits (``losses.embedding_term``) and L_f of the other F against its
+    features (``losses.feature_error``; 0 when the field learns no features)."""
+    S = batch.embedding.shape[1]
+    le = losses.embedding_term(kind, batch.embedding, rendered[:, :S], confidence_power)
+    return le, losses.feature_error(batch.features, rendered[:, S:])
 
 
 def evaluate(field: EmbeddingField, origins: torch.Tensor, dirs: torch.Tensor,
@@ -64,8 +75,10 @@ class FieldModel(nn.Module):
     """What the mapper needs from a backend.
 
     Constructed as ``Model(cfg, channels, shared, generator)``: its own config
-    (``mapper.<name>``), the embedding channels S, the shared ``MapperConfig``
-    (``lambda_embedding``) and the generator its initial weights are drawn from.
+    (``mapper.<name>``), the embedding channels it learns and renders (the S logits,
+    then any backbone features it distils: ``mapper.distill_features``), the shared
+    ``MapperConfig`` (``lambda_embedding``, ``lambda_features``) and the generator its
+    initial weights are drawn from. :func:`distillation` gives its embedding losses.
     """
 
     field: EmbeddingField

@@ -22,7 +22,7 @@ from ...params import param
 from .. import losses, renderer, samplers
 from ..fields import TriPlaneField
 from .registry import register
-from .base import FieldModel, RayBatch, evaluate, render_samples
+from .base import FieldModel, RayBatch, distillation, evaluate, render_samples
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,6 +83,7 @@ class FastModel(FieldModel):
         super().__init__()
         self.cfg = cfg
         self.lambda_embedding = shared.lambda_embedding
+        self.lambda_features = shared.lambda_features
         self.field = TriPlaneField(channels, list(cfg.plane_cell_sizes), generator,
                                    cfg.plane_channels, cfg.hidden)
         self.rays_per_iteration = cfg.rays_per_iteration
@@ -99,13 +100,15 @@ class FastModel(FieldModel):
         out = render_samples(self.field, batch.origins, batch.dirs, t)
         c = self.cfg
         lp = losses.photometric(out["rgb"], batch.rgb)
-        le = losses.embedding_term(c.embedding_loss, batch.embedding, out["embedding"],
-                                   c.embedding_confidence_power)
+        le, lfeat = distillation(c.embedding_loss, batch, out["embedding"],
+                                 c.embedding_confidence_power)
         ld = losses.depth_l1(out["depth"], batch.depth)
         lf = losses.free_space(out["weights"], t, batch.depth, c.surface_band)
-        total = lp + self.lambda_embedding * le + c.lambda_depth * ld + c.lambda_free * lf
-        return {"total": total, "photometric": lp, "embedding": le, "depth": ld,
-                "free_space": lf, "fine_rgb_mse": ((out["rgb"] - batch.rgb) ** 2).mean().detach()}
+        total = (lp + self.lambda_embedding * le + self.lambda_features * lfeat
+                 + c.lambda_depth * ld + c.lambda_free * lf)
+        return {"total": total, "photometric": lp, "embedding": le, "features": lfeat,
+                "depth": ld, "free_space": lf,
+                "fine_rgb_mse": ((out["rgb"] - batch.rgb) ** 2).mean().detach()}
 
     def _render_free(self, origins, dirs, near, far):
         """No depth: a density-only stratified pass, then importance samples."""

@@ -16,7 +16,7 @@ from ...params import param
 from .. import losses, samplers
 from ..fields import NerfField
 from .registry import register
-from .base import FieldModel, RayBatch, render_samples
+from .base import FieldModel, RayBatch, distillation, render_samples
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +46,7 @@ class ReferenceModel(FieldModel):
         super().__init__()
         self.cfg = cfg
         self.lambda_embedding = shared.lambda_embedding
+        self.lambda_features = shared.lambda_features
         self.coarse = NerfField(channels, generator)
         self.field = NerfField(channels, generator)
         self.rays_per_iteration = cfg.rays_per_iteration
@@ -65,9 +66,11 @@ class ReferenceModel(FieldModel):
         lp = (losses.photometric(coarse["rgb"], batch.rgb)
               + losses.photometric(fine["rgb"], batch.rgb))
         kind = self.cfg.embedding_loss
-        le = (losses.embedding_term(kind, batch.embedding, coarse["embedding"])
-              + losses.embedding_term(kind, batch.embedding, fine["embedding"]))
-        return {"total": lp + self.lambda_embedding * le, "photometric": lp, "embedding": le,
+        le_c, lf_c = distillation(kind, batch, coarse["embedding"])
+        le_f, lf_f = distillation(kind, batch, fine["embedding"])
+        le, lfeat = le_c + le_f, lf_c + lf_f
+        return {"total": lp + self.lambda_embedding * le + self.lambda_features * lfeat,
+                "photometric": lp, "embedding": le, "features": lfeat,
                 "fine_rgb_mse": ((fine["rgb"] - batch.rgb) ** 2).mean().detach()}
 
     def render_rays(self, origins, dirs, near, far, depth=None):
