@@ -51,7 +51,12 @@ the report gives the mean over scenes. Rows of the report (percent):
   labels that keeps a surface's novel id (``label_fusion.enabled`` off);
 - ``no_pixel_known``: every pixel of a known segment takes the segment's class
   (``discovery.pixel_known`` off);
-- ``tuned`` (with ``--tune``): the values the search chose, on the test scenes.
+- ``tuned`` (with ``--tune``): the values the search chose, on the test scenes;
+- ``oracle_embedding``: discovery fed the ground truth as its embedding (5 x one-hot
+  logits on known-class pixels, uniform, i.e. maximal entropy, on novel and void ones) on
+  the mapper's view depth: what the same discovery scores when the known classes are
+  perfect and the novel ones carry no class information, the known-class ceiling of any
+  mapper stage (field or fusion) in front of it.
 
 ``--tune`` first runs a coordinate search over the labelling and clustering
 parameters on the tuning scenes (mIoU over all classes) and prints the grid;
@@ -220,7 +225,9 @@ NOTES = ('The colour descriptor (modulation.colour_weight) and the mode split '
          'common predicted id (known ids included, so an object always called wall scores 1), '
          'mean over objects then over scenes (a fraction); _found: over its novel-labelled '
          'pixels only. view_ms: the mapper stage per view (keyframe fusion and any field '
-         'render), median.')
+         'render), median. oracle_embedding: the same discovery fed the ground truth as its '
+         'embedding (known classes one-hot, novel ones uniform) on the view depth: the '
+         'known-class ceiling of any mapper stage in front of this discovery.')
 
 METRICS = ("miou_all", "miou_known", "miou_novel", "total_acc", "avg_acc", "assigned_miou")
 
@@ -232,7 +239,8 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     ``source``: "rendered" (the mapper stage's view: the Embedding-NeRF's embedding and
     entropy, segmented on the view's depth), "rendered_measured" (the same on the
     measured depth), "logits" (the backbone's per-frame logits and their entropy, on
-    the measured depth: no mapper stage) or "argmax" (the backbone's argmax, no
+    the measured depth: no mapper stage), "oracle" (the ground truth as embedding,
+    :func:`oracle_embedding`, on the view's depth) or "argmax" (the backbone's argmax, no
     discovery). ``keep`` collects (rgb, gt, backbone ids, labels, entropy) of a few
     frames for the picture.
     """
@@ -246,8 +254,11 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
         intr = Intrinsics.from_matrix(sc["K"][i], w, h)
         logits = sc["logits"][i].astype(np.float32)
         feats = None
-        depth = sc["view_depth"][i] if source == "rendered" else sc["depth"][i]
-        if source.startswith("rendered"):
+        depth = sc["view_depth"][i] if source in ("rendered", "oracle") else sc["depth"][i]
+        if source == "oracle":
+            emb = oracle_embedding(sc["semantic"][i], len(c2i))
+            ent = entropy(emb)
+        elif source.startswith("rendered"):
             emb, ent = sc["embedding"][i].astype(np.float32), sc["entropy"][i]
             if emb.shape[-1] > len(c2i):  # backbone.features: the features follow
                 emb, feats = emb[..., : len(c2i)], emb[..., len(c2i):]
@@ -276,6 +287,15 @@ def discover_scene(sc: dict, cfg: config.Config, source: str = "rendered",
     out.update(stable.result())
     out["iou"] = {classes.class_name(c): v for c, v in r["iou"].items() if v is not None}
     return out, times
+
+
+def oracle_embedding(semantic: np.ndarray, channels: int) -> np.ndarray:
+    """The ground truth as an embedding: logits 5 on the known class's channel (0 elsewhere)
+    at known-class pixels, all 0 (uniform, the maximal entropy) at novel and void ones."""
+    emb = np.zeros(semantic.shape + (channels,), np.float32)
+    for cid, k in classes.ID_TO_CHANNEL.items():
+        emb[..., k] += 5.0 * (semantic == cid)
+    return emb
 
 
 _SCENES: list[dict] = []  # inherited by forked workers of discover()
@@ -399,11 +419,11 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
     known, novel = np.array(classes.KNOWN_IDS), np.array(classes.NOVEL_IDS)
     per = []
     for sc in scenes:
-        rend = sc["embedding"].astype(np.float32)
         lg = sc["logits"].astype(np.float32)
+        S = lg.shape[-1]
+        rend = sc["embedding"][..., :S].astype(np.float32)  # any features follow the logits
         gt = sc["semantic"]
         r_ids, b_ids = c2i[rend.argmax(-1)], c2i[lg.argmax(-1)]
-        S = lg.shape[-1]
         ent_r = sc["entropy"] / np.log(S)
         ent_b = np.stack([entropy(x) for x in lg]) / np.log(S)
         row = {"frames": int(len(gt)), "keyframes": int(sc["keyframe"].sum()),
@@ -435,7 +455,7 @@ def diagnose(scenes: list[dict], cfg: config.Config, workers: int = 1) -> dict:
         per_scene = []
         for sc in scenes:  # each scene on its own, then the mean, as discover() does
             ev, gt = Evaluator(), sc["semantic"]
-            ev.update(c2i[sc[key].astype(np.float32).argmax(-1)].astype(np.uint16),
+            ev.update(c2i[sc[key][..., :len(c2i)].astype(np.float32).argmax(-1)].astype(np.uint16),
                       np.where(np.isin(gt, known), gt, 0))
             per_scene.append(ev.result()["miou_known"])
         out[f"known_only_miou_{name}_argmax"] = float(np.mean(per_scene))
@@ -594,6 +614,7 @@ def main() -> None:
             with_overrides(base, {"modulation.colour_weight": 0.0,
                                   "discovery.mode_split": False}), "logits"),
         "backbone": (base, "argmax"),
+        "oracle_embedding": (base, "oracle"),
         **({"no_label_fusion": (with_overrides(base, {"label_fusion.enabled": False}),
                                 "rendered")} if base.label_fusion.enabled else {}),
         **({"no_pixel_known": (with_overrides(base, {"discovery.pixel_known": False}),
