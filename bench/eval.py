@@ -41,6 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros import config, synth  # noqa: E402
+from neurncd_ros.core.backbone.backbone import compute_dtype  # noqa: E402
 from neurncd_ros.core.eval import evaluate, report, targets  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
@@ -131,6 +132,8 @@ def main() -> None:
     res.update({"test_seeds": test, "frames_per_scene": frames, "quick": bool(args.quick),
                 "labelled_frames": int(sum(b["labelled"] for b in per)),
                 "seconds": round(time.perf_counter() - t0, 1), "cores": os.cpu_count(),
+                "backbone_precision": str(compute_dtype(_config(tuple(args.set)).backbone))
+                .removeprefix("torch."),
                 "commit": commit(), "rows": {r: {f: agg[r][f] for f in evaluate.FIGURES}
                                               for r in agg}})
     res["semnerf"] = semnerf_facts
