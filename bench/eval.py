@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from neurncd_ros import config, synth  # noqa: E402
-from neurncd_ros.core.backbone.backbone import compute_dtype  # noqa: E402
+from neurncd_ros.core.backbone.backbone import load_backbone  # noqa: E402
 from neurncd_ros.core.eval import evaluate, report, targets  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
@@ -107,7 +107,7 @@ def main() -> None:
     if args.set and args.name == "eval":
         raise SystemExit("--set changes the configuration: give the run its own --name "
                          "(eval.json holds the default configuration)")
-    _config(tuple(args.set))  # a bad override fails here, before any scene runs
+    cfg = _config(tuple(args.set))  # a bad override fails here, before any scene runs
     n, frames = (2, 40) if args.quick else (args.scenes, args.frames)
     test = list(seeds.TEST[:n])
     t0 = time.perf_counter()
@@ -132,8 +132,7 @@ def main() -> None:
     res.update({"test_seeds": test, "frames_per_scene": frames, "quick": bool(args.quick),
                 "labelled_frames": int(sum(b["labelled"] for b in per)),
                 "seconds": round(time.perf_counter() - t0, 1), "cores": os.cpu_count(),
-                "backbone_precision": str(compute_dtype(_config(tuple(args.set)).backbone))
-                .removeprefix("torch."),
+                "backbone_precision": load_backbone(cfg.backbone).precision,
                 "commit": commit(), "rows": {r: {f: agg[r][f] for f in evaluate.FIGURES}
                                               for r in agg}})
     res["semnerf"] = semnerf_facts

@@ -95,8 +95,7 @@ from neurncd_ros.core import classes  # noqa: E402
 from neurncd_ros.core.engine.views import resize_to  # noqa: E402
 from neurncd_ros.core.engine.offline import OfflineEngine  # noqa: E402
 from neurncd_ros.synth.training import generator_hash  # noqa: E402
-from neurncd_ros.core.backbone.backbone import (DEFAULT_WEIGHTS, compute_dtype,  # noqa: E402
-                                               load_backbone)
+from neurncd_ros.core.backbone.backbone import DEFAULT_WEIGHTS, load_backbone  # noqa: E402
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.core.camera import Intrinsics  # noqa: E402
 from neurncd_ros import synth  # noqa: E402
@@ -641,7 +640,7 @@ def main() -> None:
     res["notes"] = NOTES
     res["cores"] = os.cpu_count()
     # What backbone.precision resolved to here (auto: bfloat16 only on a CPU that has it).
-    res["backbone_precision"] = str(compute_dtype(base.backbone)).removeprefix("torch.")
+    res["backbone_precision"] = load_backbone(base.backbone).precision
     res["commit"] = commit()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "ncd.json").write_text(json.dumps(res, indent=1, sort_keys=True))
