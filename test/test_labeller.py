@@ -525,3 +525,60 @@ def test_uncertain_region_without_depth_becomes_a_novel_segment():
     assert (lab[:20] == CLASS_ID["wall"]).mean() > 0.95
     off = _discoverer(uncertain_region_px=0, **kw).process(depth, intr, emb, ent)
     assert (off[hole] < NOVEL_ID_START).all()
+
+
+def _uncertain_memory(d, desc):
+    """Put segments with descriptors ``desc`` into ``d``'s memory, every one uncertain
+    (mean entropy 0.9 log S, 100 pixels), as if they came from earlier frames, beside 20
+    confident wall segments far from them."""
+    from neurncd_ros.core.discovery.labeller import _Memory
+    wall = np.full((20, desc.shape[1]), -1.0) + np.random.default_rng(0).normal(0, 0.02, (20, desc.shape[1]))
+    desc = np.concatenate([desc, wall])
+    n, k = len(desc), len(desc) - 20
+    hist = np.zeros((n, S), np.int64)
+    hist[:, list(CHANNEL_TO_ID).index(CLASS_ID["wall"])] = 100
+    ent = np.where(np.arange(n) < k, 0.9, 0.05) * np.log(S) * 100
+    d._mem = _Memory(uid=np.arange(n, dtype=np.int64), frame=np.zeros(n, np.int64),
+                     desc=desc.astype(np.float32), pixels=np.full(n, 100, np.int64),
+                     ent_sum=ent, hist=hist, cluster=np.full(n, -1, np.int64))
+
+
+def test_uncertain_segments_of_three_novel_classes_keep_three_ids():
+    """Three novel classes' uncertain segments, a few hundred pixels apart in descriptor
+    space (0.49, beyond novel_merge_distance): at novel_inflation 2 (the default) they are
+    three novel ids; at the memory's inflation 1.4 Markov clustering flows them into one
+    (what made a long run give the picture, window and ceiling one id)."""
+    rng = np.random.default_rng(3)
+    centres = np.eye(12)[:3] * 0.35
+    desc = np.concatenate([c + rng.normal(0, 0.06, (20, 12)) for c in centres])
+    truth = np.repeat(np.arange(3), 20)
+
+    def ids(**kw):
+        d = Discoverer(DiscoveryConfig(segment_novelty=True, min_cluster_pixels=50, **kw),
+                       CHANNEL_TO_ID)
+        _uncertain_memory(d, desc)
+        d._recluster()
+        assert (d._mem.cluster[60:] == CLASS_ID["wall"]).all()
+        assert (d._mem.cluster[:60] >= NOVEL_ID_START).all()  # the uncertain ones: novel
+        return d._mem.cluster[:60]
+
+    lab = ids()
+    for c in range(3):
+        assert len(set(lab[truth == c].tolist())) == 1  # one id per class ...
+    assert len(set(lab.tolist())) == 3  # ... and three ids
+    assert len(set(ids(novel_inflation=1.4).tolist())) == 1
+
+
+def test_novel_merge_does_not_chain_across_classes():
+    """Novel clusters on a chain, each within novel_merge_distance of the next, as pieces
+    between two objects put them: average link joins the close pairs but not the chain's
+    ends (single link made them one id); two far groups stay apart, 0 turns merging off."""
+    d = Discoverer(DiscoveryConfig(novel_merge_distance=0.4), CHANNEL_TO_ID)
+    chain = np.outer([0.0, 0.3, 0.65, 0.95, 1.3], np.eye(4)[0])
+    g = d._novel_groups(chain)
+    assert g[0] == g[1] and g[2] == g[3] and len({g[0], g[2], g[4]}) == 3
+    far = np.concatenate([np.zeros((2, 4)), np.full((2, 4), 2.0)]) + np.eye(4)[:, :] * 0.05
+    g = d._novel_groups(far)
+    assert g[0] == g[1] and g[2] == g[3] and g[0] != g[2]
+    off = Discoverer(DiscoveryConfig(novel_merge_distance=0.0), CHANNEL_TO_ID)
+    assert off._novel_groups(chain).tolist() == [0, 1, 2, 3, 4]
