@@ -532,7 +532,8 @@ def _uncertain_memory(d, desc):
     (mean entropy 0.9 log S, 100 pixels), as if they came from earlier frames, beside 20
     confident wall segments far from them."""
     from neurncd_ros.core.discovery.labeller import _Memory
-    wall = np.full((20, desc.shape[1]), -1.0) + np.random.default_rng(0).normal(0, 0.02, (20, desc.shape[1]))
+    noise = np.random.default_rng(0).normal(0, 0.02, (20, desc.shape[1]))
+    wall = np.full((20, desc.shape[1]), -1.0) + noise
     desc = np.concatenate([desc, wall])
     n, k = len(desc), len(desc) - 20
     hist = np.zeros((n, S), np.int64)
