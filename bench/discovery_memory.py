@@ -7,7 +7,7 @@ grows with the memory until ``discovery.memory_size`` caps it; beyond
 cost. The other benches' scenes (150-300 frames, 23-47 labelled) stay below about 1000
 segments and never show this; a user's long bag does.
 
-A walk of tuning seed 500 (seeds.TUNE[0]) with one frame per second of stream, every
+A walk of a tuning scene (``--seed``, default seed 500) with one frame per second of stream, every
 frame labelled (about the keyframe rate of the live graph), the default backbone's
 embeddings and entropy (no field: this measures discovery alone), one torch thread.
 The walk and its embeddings are computed once; each configuration then runs a fresh
@@ -16,12 +16,15 @@ the time inside Markov clustering; per run: mIoU (all / known / novel, Hungarian
 as in bench/ncd.py) and novel-id stability, over the whole walk and over the frames at
 the memory cap.
 
-Figures (bench/results/discovery_memory.json; times in ms, medians): per run
+Figures (bench/results/discovery_memory.json, or discovery_memory_s<seed>.json with
+``--seed``; times in ms, medians): per run
 (``runs``, the first the default configuration) ``windows`` (first frame, memory
-segments, process ms, clustering ms, over windows of 25 frames),
+segments, process ms, clustering ms, and the window's own all / known / novel mIoU,
+its 25 frames matched on their own: whether discovery holds up as the memory fills),
 ``process_ms_at_cap`` / ``mcl_ms_at_cap`` / ``process_ms_mean_at_cap`` (what sets the
 throughput), ``frames_to_cap``, ``quality`` and ``quality_at_cap``;
-discovery_memory.png plots the time per frame of every run.
+discovery_memory.png plots the time per frame and each window's novel mIoU of every
+run.
 
     .venv/bin/python bench/discovery_memory.py              # 300 frames, default (~4 min)
     .venv/bin/python bench/discovery_memory.py --sweep discovery.recluster_segments=0,1000
@@ -107,6 +110,7 @@ def run(cfg: config.Config, frames: list[tuple]) -> tuple[list[dict], dict, dict
     rows = []
     ev, stable = Evaluator(), IdStability()
     ev_cap, stable_cap = Evaluator(), IdStability()
+    ev_win = Evaluator()
     with ClusteringTimer() as clock:
         for i, (fr, emb, ent) in enumerate(tqdm(frames, desc="labelled frames",
                                                 unit="frame")):
@@ -118,6 +122,12 @@ def run(cfg: config.Config, frames: list[tuple]) -> tuple[list[dict], dict, dict
                          "mcl_ms": clock.ms, "memory": disc.memory_len})
             ev.update(lab, fr.semantic)
             stable.update(lab, fr.semantic, fr.instance)
+            ev_win.update(lab, fr.semantic)
+            if (i + 1) % WINDOW == 0 or i + 1 == len(frames):
+                q = ev_win.result()  # this window's frames alone, matched on their own
+                rows[-1]["window_quality"] = {k: q[k] for k in
+                                              ("miou_all", "miou_known", "miou_novel")}
+                ev_win = Evaluator()
             if disc.memory_len >= cfg.discovery.memory_size:
                 ev_cap.update(lab, fr.semantic)
                 stable_cap.update(lab, fr.semantic, fr.instance)
@@ -131,7 +141,8 @@ def summarise(rows: list[dict], memory_size: int) -> dict:
         w = rows[s: s + WINDOW]
         windows.append({"first_frame": s, "memory": int(w[-1]["memory"]),
                         "process_ms": statistics.median(r["process_ms"] for r in w),
-                        "mcl_ms": statistics.median(r["mcl_ms"] for r in w)})
+                        "mcl_ms": statistics.median(r["mcl_ms"] for r in w),
+                        **w[-1].get("window_quality", {})})
     at_cap = [r for r in rows if r["memory"] >= memory_size]
 
     def med(key):
@@ -144,20 +155,29 @@ def summarise(rows: list[dict], memory_size: int) -> dict:
 
 
 def plot(runs: list[dict], path: Path) -> None:
+    """Time per labelled frame, and each window's novel mIoU, as the memory fills."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, (ax, aq) = plt.subplots(1, 2, figsize=(12, 4))
     for r in runs:
         name = r["name"]
         ax.plot([x["frame"] for x in r["rows"]], [x["process_ms"] for x in r["rows"]], ".",
                 ms=3, label=f"{name}: Discoverer.process")
+        win = [w for w in r["windows"] if "miou_novel" in w]
+        aq.plot([w["first_frame"] for w in win], [w["miou_novel"] for w in win], "o-",
+                label=name)
     ax.set_xlabel("labelled frame (one per second of stream)")
     ax.set_ylabel("ms per labelled frame (1 thread)")
     ax.set_yscale("log")
     ax.set_title("discovery time as the segment memory fills")
     ax.legend(fontsize=8)
+    aq.set_xlabel(f"first labelled frame of the window ({WINDOW} frames)")
+    aq.set_ylabel("novel mIoU in the window (%)")
+    aq.set_ylim(0, 100)
+    aq.set_title("novel classes as the memory fills")
+    aq.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -166,11 +186,13 @@ def plot(runs: list[dict], path: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="labelled frames (1 per second)")
+    ap.add_argument("--seed", type=int, default=seeds.TUNE[0],
+                    help="scene seed of the walk (a tuning seed: the walk tunes discovery)")
     ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
                     help="also run these values of one parameter (the default first)")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    seed = seeds.TUNE[0]
+    seed = args.seed
     base = config.load(None, {})
     variants = [("default", base, {})]
     if args.sweep:
@@ -192,18 +214,22 @@ def main() -> int:
                    rows=rows)
         runs.append(res)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    plot(runs, RESULTS / "discovery_memory.png")
+    stem = "discovery_memory" + ("" if seed == seeds.TUNE[0] else f"_s{seed}")
+    plot(runs, RESULTS / f"{stem}.png")
     for r in runs:
         del r["rows"]
     out = {"runs": runs, "seed": seed, "threads": 1, "frames": args.frames,
            "commit": commit()}
-    (RESULTS / "discovery_memory.json").write_text(json.dumps(out, indent=1) + "\n")
+    (RESULTS / f"{stem}.json").write_text(json.dumps(out, indent=1) + "\n")
     for r in runs:
         print(f"\n{r['name']}")
-        print(f"{'frames':>8} {'memory':>8} {'process ms':>11} {'mcl ms':>8}")
+        print(f"{'frames':>8} {'memory':>8} {'process ms':>11} {'mcl ms':>8}   window mIoU "
+              "all / known / novel")
         for w in r["windows"]:
             print(f"{w['first_frame']:>8} {w['memory']:>8} {w['process_ms']:>11.0f} "
-                  f"{w['mcl_ms']:>8.0f}")
+                  f"{w['mcl_ms']:>8.0f}   {w.get('miou_all', float('nan')):5.1f} / "
+                  f"{w.get('miou_known', float('nan')):5.1f} / "
+                  f"{w.get('miou_novel', float('nan')):5.1f}")
         if r["frames_to_cap"] is not None:
             print(f"at the cap ({r['memory_size']} segments, from frame {r['frames_to_cap']}): "
                   f"process median {r['process_ms_at_cap']:.0f} ms, mean "
@@ -217,7 +243,7 @@ def main() -> int:
                f"{c['novel_id_stability']:>6.3f}" if c else "")
         print(f"{r['name']:<40} {q['miou_all']:>6.1f} {q['miou_known']:>6.1f} "
               f"{q['miou_novel']:>6.1f} {q['novel_id_stability']:>6.3f}   {'':>11}{cap}")
-    print(f"wrote {RESULTS / 'discovery_memory.json'} and discovery_memory.png")
+    print(f"wrote {RESULTS / stem}.json and {stem}.png")
     return 0
 
 
