@@ -583,3 +583,31 @@ def test_novel_merge_does_not_chain_across_classes():
     assert g[0] == g[1] and g[2] == g[3] and g[0] != g[2]
     off = Discoverer(DiscoveryConfig(novel_merge_distance=0.0), CHANNEL_TO_ID)
     assert off._novel_groups(chain).tolist() == [0, 1, 2, 3, 4]
+
+
+def test_segments_between_reclusterings_join_clusters_of_their_own_kind():
+    """Between re-clusterings an uncertain segment joins the novel cluster, not the
+    confident wall cluster whose mean descriptor is nearer to it; a confident segment
+    joins the wall although the novel cluster's mean is nearer (as a re-clustering with
+    segment_novelty would place them). Without segment_novelty the nearest wins."""
+    from neurncd_ros.core.discovery.labeller import _Memory
+
+    rng = np.random.default_rng(1)
+    novel = np.eye(12)[0] * 0.35 + rng.normal(0, 0.02, (20, 12))
+    d = Discoverer(DiscoveryConfig(segment_novelty=True, min_cluster_pixels=50), CHANNEL_TO_ID)
+    _uncertain_memory(d, novel)
+    d._recluster()
+    wall, nov = CLASS_ID["wall"], int(d._mem.cluster[0])
+    assert (d._mem.cluster[20:] == wall).all() and nov >= NOVEL_ID_START
+    # Two arrivals: the first halfway but nearer the wall and uncertain, the second
+    # nearer the novel class and confident.
+    desc = np.stack([0.45 * np.eye(12)[0] * 0.35 + 0.55 * np.full(12, -1.0),
+                     0.6 * np.eye(12)[0] * 0.35 + 0.4 * np.full(12, -1.0)])
+    ent = np.array([0.9, 0.05]) * np.log(S) * 100
+    new = _Memory(uid=np.array([100, 101]), frame=np.ones(2, np.int64),
+                  desc=desc.astype(np.float32), pixels=np.full(2, 100, np.int64),
+                  ent_sum=ent, hist=np.zeros((2, S), np.int64), cluster=np.full(2, -1))
+    assert d._nearest_cluster(new).tolist() == [nov, wall]
+    d_plain = Discoverer(DiscoveryConfig(segment_novelty=False), CHANNEL_TO_ID)
+    d_plain._mem = d._mem
+    assert d_plain._nearest_cluster(new).tolist() == [wall, nov]
