@@ -132,7 +132,7 @@ class DiscoveryConfig:
                                     "recluster_period frames (Markov clustering's time grows "
                                     "about with the square of the memory, so its cost per "
                                     "frame stays near what it is at this size; new segments "
-                                    "join the nearest cluster in between; 0 = off)",
+                                    "join the nearest cluster of their kind in between; 0 = off)",
                                     lo=0, hi=100000)
     entropy_threshold: float = param(0.6, "known if mean entropy / log(S) is below this",
                                      lo=0.0, hi=1.0)
