@@ -419,12 +419,16 @@ class Discoverer:
             clusters = self._split_uncertain(clusters)
         mem.cluster = self.name_clusters(clusters)
 
+    def _uncertain(self, mem: _Memory) -> np.ndarray:
+        """(N,) bool: the segments whose mean entropy is above the known/novel threshold."""
+        return (mem.ent_sum / np.maximum(mem.pixels, 1)
+                > self.cfg.entropy_threshold * np.log(self.S))
+
     def _split_uncertain(self, clusters: np.ndarray) -> np.ndarray:
         """Take the segments above the entropy threshold out of their clusters and
         cluster them among themselves: a confident majority cannot absorb them."""
         mem = self._mem
-        ent = mem.ent_sum / np.maximum(mem.pixels, 1)
-        unsure = np.flatnonzero(ent > self.cfg.entropy_threshold * np.log(self.S))
+        unsure = np.flatnonzero(self._uncertain(mem))
         if unsure.size == 0 or unsure.size == len(mem):
             return clusters
         out = np.asarray(clusters, np.int64).copy()
@@ -564,9 +568,7 @@ class Discoverer:
             return np.full(len(new), UNDECIDED, np.int64)
         out = np.full(len(new), UNDECIDED, np.int64)
         if self.cfg.segment_novelty:
-            limit = self.cfg.entropy_threshold * np.log(self.S)
-            mem_unsure = mem.ent_sum / np.maximum(mem.pixels, 1) > limit
-            new_unsure = new.ent_sum / np.maximum(new.pixels, 1) > limit
+            mem_unsure, new_unsure = self._uncertain(mem), self._uncertain(new)
             kinds = [(mem_unsure == k, np.flatnonzero(new_unsure == k)) for k in (False, True)]
         else:
             kinds = [(np.ones(len(mem), bool), np.arange(len(new)))]
