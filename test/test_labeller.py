@@ -611,3 +611,36 @@ def test_segments_between_reclusterings_join_clusters_of_their_own_kind():
     d_plain = Discoverer(DiscoveryConfig(segment_novelty=False), CHANNEL_TO_ID)
     d_plain._mem = d._mem
     assert d_plain._nearest_cluster(new).tolist() == [wall, nov]
+
+
+def test_a_long_walk_keeps_the_novel_classes_apart():
+    """Tuning seed 500 walked for 50 s (one labelled frame per second, the default
+    backbone's embedding): by the last ten frames the memory holds about 1000 segments,
+    hundreds of them uncertain, and the ceiling, the picture and the TV still get three
+    different novel ids (at the memory's inflation with single-link merging and cosine
+    assignment, all three took one id there; bench/discovery_memory.py measures the
+    whole walk)."""
+    from neurncd_ros import synth
+    from neurncd_ros.core.backbone.backbone import BackboneConfig, load_backbone
+    from neurncd_ros.core.uncertainty import entropy
+
+    backbone = load_backbone(BackboneConfig(num_threads=0, precision="float32"))
+    d = Discoverer(DiscoveryConfig(), CHANNEL_TO_ID)
+    seen: dict[int, dict[int, int]] = {}
+    frames = synth.generate(500, 50, synth.SynthConfig(fps=1.0))
+    for i, fr in enumerate(frames):
+        emb = backbone.embed(fr.rgb, fr.depth)
+        lab = d.process(fr.depth, fr.intrinsics, emb, entropy(emb), fr.stamp_ns, fr.rgb,
+                        None, fr.pose)
+        if i < 40:
+            continue
+        for name in ("ceiling", "picture", "tv"):
+            ids, counts = np.unique(lab[fr.semantic == CLASS_ID[name]], return_counts=True)
+            for j, n in zip(ids.tolist(), counts.tolist()):
+                if j >= NOVEL_ID_START:
+                    seen.setdefault(CLASS_ID[name], {}).setdefault(j, 0)
+                    seen[CLASS_ID[name]][j] += n
+    assert d.memory_len > 800
+    top = {c: max(ids, key=ids.get) for c, ids in seen.items()}
+    assert len(top) == 3, f"a novel class got no novel id: {top}"
+    assert len(set(top.values())) == 3, f"novel classes share an id: {top}"
