@@ -188,6 +188,15 @@ class DiscoveryConfig:
     seed: int = param(0, "seed of the memory's random thinning", lo=0, hi=2**31 - 1)
 
 
+def _weighted_means(group: np.ndarray, desc: np.ndarray, pixels: np.ndarray,
+                    n: int) -> np.ndarray:
+    """(n, D) pixel-weighted mean descriptor of each group 0..n-1 (``group``: (N,) the
+    group of each of the N segments): a cluster's place in descriptor space."""
+    out = np.zeros((n, desc.shape[1]))
+    np.add.at(out, group, desc * pixels[:, None])
+    return out / np.maximum(np.bincount(group, weights=pixels, minlength=n), 1)[:, None]
+
+
 @dataclasses.dataclass
 class _Memory:
     """Column store of the remembered segments."""
@@ -455,9 +464,7 @@ class Discoverer:
         nseg = np.bincount(clusters, minlength=m)
         known = (ent <= cfg.entropy_threshold * np.log(self.S)) & (share >= cfg.majority_share)
         # Pixel-weighted mean descriptor per cluster (the mode split and the merge use it).
-        cent = np.zeros((m, mem.desc.shape[1]))
-        np.add.at(cent, clusters, mem.desc * mem.pixels[:, None])
-        cent /= np.maximum(pix, 1)[:, None]
+        cent = _weighted_means(clusters, mem.desc, mem.pixels, m)
         if cfg.mode_split:
             known &= ~self._distinct_modes(known, hist.argmax(axis=1), pix, cent)
         novel = ~known & (nseg >= cfg.min_cluster_segments) & (pix >= cfg.min_cluster_pixels)
@@ -578,9 +585,7 @@ class Discoverer:
             if not pool.any():
                 pool = np.ones(len(mem), bool)
             labs, inv = np.unique(mem.cluster[pool], return_inverse=True)
-            cent = np.zeros((labs.size, mem.desc.shape[1]))
-            np.add.at(cent, inv, mem.desc[pool] * mem.pixels[pool, None])
-            cent /= np.maximum(np.bincount(inv, weights=mem.pixels[pool]), 1)[:, None]
+            cent = _weighted_means(inv, mem.desc[pool], mem.pixels[pool], labs.size)
             dist = np.linalg.norm(new.desc[todo, None, :] - cent[None], axis=2)
             out[todo] = labs[np.argmin(dist, axis=1)]
         return out
