@@ -332,3 +332,54 @@ def test_touching_coplanar_novel_ids_are_one_object_and_others_stay_apart():
     out = fus.update(labelled(ceiling, under), corner, INTR, pose, {NOVEL, other})
     assert fus.aliases == {}
     assert (out[under] == other).mean() > 0.8 and (out[ceiling] == NOVEL).mean() > 0.8
+
+
+@pytest.mark.parametrize("rule", ["touch", "share"])
+def test_one_frame_does_not_rename_an_established_id(rule):
+    """An id shown for many frames is not renamed by one frame's evidence: here a
+    clustering error gives a piece of a picture beside a window the ceiling's id (touch:
+    the piece touches the window in the wall's plane) or gives the window the ceiling's
+    id (share: the window's surface, under another id, with the window's own id absent).
+    With ``alias_frame_share`` 0 one frame renames the ceiling for good, as before; by
+    default it keeps its id, and a new id with the same evidence is still renamed at once
+    (the parts of one object)."""
+    window_id, ceiling_id = NOVEL, NOVEL + 1
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x, z = _world_x(pose, depth), _world_z(pose, depth)
+    window = (np.abs(x) < 0.3) & (np.abs(z) < 0.3)
+    piece = (x >= 0.3) & (x < 0.45) & (np.abs(z) < 0.25)  # touches the window's side
+    # The ceiling, seen elsewhere: another camera looking up at the plane z = 1.2.
+    up = look_at(np.array([3.0, 0.0, 0.0]), np.array([3.0, 0.01, 1.0]))
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones((H, W))], -1)
+    up_depth = (1.2 / (rays @ up[:3, :3].T)[..., 2]).astype(np.float32)
+    ceiling_only = np.full((H, W), ceiling_id, np.uint16)
+    wall_window = np.where(window, window_id, WALL).astype(np.uint16)
+    if rule == "touch":
+        bad = wall_window.copy()
+        bad[piece] = ceiling_id
+        cfg = dict(alias_share=0.0, touch_share=0.2)
+    else:
+        bad = np.where(window, ceiling_id, WALL).astype(np.uint16)
+        cfg = dict(alias_share=0.4, touch_share=0.0)
+    live = {window_id, ceiling_id}
+    for share, renamed in ((0.0, True), (0.5, False)):
+        fus = LabelFusion(LabelFusionConfig(coarse_voxel_size=0.0, alias_frame_share=share,
+                                            **cfg))
+        for _ in range(6):
+            fus.update(wall_window, depth, INTR, pose, live)
+            fus.update(ceiling_only, up_depth, INTR, up, live)
+        fus.update(bad, depth, INTR, pose, live)
+        assert (ceiling_id in fus.aliases) == renamed, fus.aliases
+        for _ in range(12):  # the ceiling's own old votes fade under the renamed ones
+            out = fus.update(ceiling_only, up_depth, INTR, up, live)
+        assert (out == (window_id if renamed else ceiling_id)).mean() > 0.95
+    # A new id with the same evidence in its first frame is a part of the window.
+    fresh = NOVEL + 2
+    fus = LabelFusion(LabelFusionConfig(coarse_voxel_size=0.0, **cfg))
+    for _ in range(6):
+        fus.update(wall_window, depth, INTR, pose, live)
+    fus.update(np.where(bad == ceiling_id, fresh, bad).astype(np.uint16), depth, INTR, pose,
+               live | {fresh})
+    assert fus.aliases == {fresh: window_id}
