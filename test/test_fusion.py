@@ -383,3 +383,26 @@ def test_one_frame_does_not_rename_an_established_id(rule):
     fus.update(np.where(bad == ceiling_id, fresh, bad).astype(np.uint16), depth, INTR, pose,
                live | {fresh})
     assert fus.aliases == {fresh: window_id}
+
+
+def test_a_new_piece_between_two_established_ids_renames_neither():
+    """A new id's piece touches two established ids in one frame (the TV and, through a
+    clustering error, the ceiling's id on the wall): the piece becomes one of them, and
+    neither established id is renamed through it (the evidence is counted for the ids
+    as published, not for the piece's own new id)."""
+    tv, ceiling, piece = NOVEL, NOVEL + 1, NOVEL + 5
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x, z = _world_x(pose, depth), _world_z(pose, depth)
+    band = np.abs(z) < 0.3
+    left, mid, right = band & (x < -0.1), band & (np.abs(x) <= 0.1), band & (x > 0.1)
+    live = {tv, ceiling, piece}
+    fus = LabelFusion(LabelFusionConfig(coarse_voxel_size=0.0, alias_share=0.0))
+    for _ in range(6):
+        lab = np.full((H, W), WALL, np.uint16)
+        lab[left], lab[right] = tv, ceiling
+        lab[mid] = WALL
+        fus.update(lab, depth, INTR, pose, live)
+    lab[mid] = piece
+    fus.update(lab, depth, INTR, pose, live)
+    assert set(fus.aliases) == {piece} and fus.aliases[piece] in (tv, ceiling)

@@ -329,7 +329,7 @@ class LabelFusion:
                 if a == b:
                     continue
                 self._onto[(b, a)] = self._onto.get((b, a), 0) + 1
-                if self._onto[(b, a)] < self.cfg.alias_frame_share * self._shown[b]:
+                if self._onto[(b, a)] < self.cfg.alias_frame_share * self._shown.get(b, 1):
                     continue
                 self._add_alias(b, a)
                 lab = np.where(lab == b, a, lab)
@@ -391,12 +391,15 @@ class LabelFusion:
             touched.append((a, b))
         for a, b in touched:
             big, small = (a, b) if size[a] >= size[b] else (b, a)
-            self._touched[(small, big)] = self._touched.get((small, big), 0) + 1
-            if self._touched[(small, big)] < self.cfg.alias_frame_share * self._shown[small]:
-                continue
+            # The evidence is counted for the ids as published: a region's id may be an
+            # alias of an established one, and that id is what an alias would rename.
             big, small = self._alias.get(big, big), self._alias.get(small, small)
-            if big != small:
-                self._add_alias(small, big)
+            if big == small:
+                continue
+            self._touched[(small, big)] = self._touched.get((small, big), 0) + 1
+            if self._touched[(small, big)] < self.cfg.alias_frame_share * self._shown.get(small, 1):
+                continue
+            self._add_alias(small, big)
 
     # ------------------------------------------------------------ main entry
     def update(self, labels: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
