@@ -187,7 +187,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=300, help="labelled frames (1 per second)")
     ap.add_argument("--seed", type=int, default=seeds.TUNE[0],
-                    help="scene seed of the walk (a tuning seed: the walk tunes discovery)")
+                    help="scene seed of the walk (a tuning seed to tune discovery on; a "
+                    "test seed only to check a chosen default on held-out data)")
     ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
                     help="also run these values of one parameter (the default first)")
     args = ap.parse_args()

@@ -331,8 +331,7 @@ class LabelFusion:
                 a = self._alias.get(a, a)
                 if a == b:
                     continue
-                self._onto[(b, a)] = self._onto.get((b, a), 0) + 1
-                if self._onto[(b, a)] < self.cfg.alias_frame_share * self._shown.get(b, 1):
+                if not self._enough_evidence(self._onto, b, a):
                     continue
                 self._add_alias(b, a)
                 lab = np.where(lab == b, a, lab)
@@ -369,7 +368,10 @@ class LabelFusion:
                       & (hi - lo <= 0.03 + 0.02 * lo))
             pa, pb = np.minimum(a[shared], b[shared]), np.maximum(a[shared], b[shared])
             keys.append(pa * (1 << 32) + pb)
-        pairs, border = np.unique(np.concatenate(keys), return_counts=True)
+        keys = np.concatenate(keys)
+        if not keys.size:
+            return
+        pairs, border = np.unique(keys, return_counts=True)
         at = lab[mask]
         normals: dict[int, np.ndarray | None] = {}
 
@@ -383,7 +385,6 @@ class LabelFusion:
 
         cos_max = np.cos(np.radians(TOUCH_MAX_ANGLE_DEG))
         size = np.bincount(lab.ravel(), minlength=outline.size)
-        touched = []
         for key, n in zip(pairs.tolist(), border.tolist()):
             a, b = key >> 32, key & 0xFFFFFFFF
             if n < self.cfg.touch_share * min(outline[a], outline[b]):
@@ -391,18 +392,20 @@ class LabelFusion:
             na, nb = normal(a), normal(b)
             if na is None or nb is None or abs(float(na @ nb)) < cos_max:
                 continue
-            touched.append((a, b))
-        for a, b in touched:
             big, small = (a, b) if size[a] >= size[b] else (b, a)
             # The evidence is counted for the ids as published: a region's id may be an
             # alias of an established one, and that id is what an alias would rename.
             big, small = self._alias.get(big, big), self._alias.get(small, small)
-            if big == small:
-                continue
-            self._touched[(small, big)] = self._touched.get((small, big), 0) + 1
-            if self._touched[(small, big)] < self.cfg.alias_frame_share * self._shown.get(small, 1):
-                continue
-            self._add_alias(small, big)
+            if big != small and self._enough_evidence(self._touched, small, big):
+                self._add_alias(small, big)
+
+    def _enough_evidence(self, counts: dict[tuple[int, int], int], src: int, dst: int
+                         ) -> bool:
+        """Count one more frame of evidence (in ``counts``) that novel id ``src`` is
+        ``dst``; True once it came in at least ``alias_frame_share`` of the frames that
+        showed ``src`` (counted in :meth:`update`), the test both alias rules share."""
+        counts[(src, dst)] = counts.get((src, dst), 0) + 1
+        return counts[(src, dst)] >= self.cfg.alias_frame_share * self._shown.get(src, 1)
 
     # ------------------------------------------------------------ main entry
     def update(self, labels: np.ndarray, depth: np.ndarray, intrinsics: Intrinsics,
