@@ -527,6 +527,46 @@ def test_uncertain_region_without_depth_becomes_a_novel_segment():
     assert (off[hole] < NOVEL_ID_START).all()
 
 
+def test_uncertain_region_inside_a_known_segment_is_carved_out():
+    """A picture flush with a wall that the segmentation left inside the wall's segment
+    (no depth step; embedding edges off here), whose embedding is unsure although its
+    argmax is "wall": with ``uncertain_region_carve`` it becomes a segment of its own and
+    gets a novel id. A band of uncertain pixels two pixels wide (an object's border)
+    stays wall, and without the carve so does the picture."""
+    from neurncd_ros.core.discovery.geoseg import GeoSegConfig
+    rng = np.random.default_rng(5)
+    depth = np.full((H, W), 2.0, np.float32)
+    emb = _logits("wall", rng, H * W).reshape(H, W, S)
+    picture, band = (slice(20, 34), slice(30, 50)), (slice(45, 47), slice(5, 75))
+    wall_ch = list(CHANNEL_TO_ID).index(CLASS_ID["wall"])
+    for r, c in (picture, band):
+        unsure = rng.normal(0, 0.3, (r.stop - r.start, c.stop - c.start, S))
+        unsure[..., wall_ch] += 1.0
+        emb[r, c] = unsure
+    p = softmax(emb)
+    ent = -(p * np.log(p)).sum(-1).astype(np.float32)
+    assert (emb[picture].argmax(-1) == wall_ch).mean() > 0.9
+    assert ent[picture].mean() > 0.8 * np.log(S) and ent.mean() < 0.6 * np.log(S)
+    intr = Intrinsics.from_hfov(W, H)
+
+    def label(carve):
+        cfg = DiscoveryConfig(min_cluster_pixels=50, **{**STAND_IN, "min_cluster_segments": 1,
+                                                          "segment_novelty": True},
+                              uncertain_region_px=300, uncertain_region_entropy=0.6,
+                              uncertain_region_carve=carve,
+                              uncertain_region_opening=24)  # 3 px at W = 80
+        d = Discoverer(cfg, CHANNEL_TO_ID, mcl_cfg=MCLConfig(k=10),
+                       seg_cfg=GeoSegConfig(embedding_edges=False))
+        return d.process(depth, intr, emb, ent)
+
+    lab = label(True)
+    vals, counts = np.unique(lab[picture], return_counts=True)
+    assert vals[np.argmax(counts)] >= NOVEL_ID_START and counts.max() > 0.9 * lab[picture].size
+    assert (lab[band] == CLASS_ID["wall"]).mean() > 0.9
+    assert (lab[:15] == CLASS_ID["wall"]).all()
+    assert (label(False)[picture] == CLASS_ID["wall"]).mean() > 0.9
+
+
 def _uncertain_memory(d, desc):
     """Put segments with descriptors ``desc`` into ``d``'s memory, every one uncertain
     (mean entropy 0.9 log S, 100 pixels), as if they came from earlier frames, beside 20
