@@ -45,8 +45,11 @@ the report gives the mean over scenes. Rows of the report (percent):
   the backbone's known-class logits without its outlier-exposed novelty branch
   (``backbone.novelty_branch`` false: the same argmax, the head's own entropy,
   with the entropy threshold tuned for it, 0.15) (these rows render the scenes again);
-- ``uncertain_regions``: large high-entropy regions without a segment become segments
-  (``discovery.uncertain_region_px`` 1200, off by default);
+- ``no_uncertain_regions``: no large uncertain regions as segments of their own
+  (``discovery.uncertain_region_px`` 0), on the rendered views and
+  (``backbone_logits_no_uncertain_regions``) on the backbone's logits; ``no_carve``:
+  such regions only where the segmentation left pixels without a segment, not carved
+  out of confident segments (``discovery.uncertain_region_carve`` off);
 - ``no_label_fusion``: every frame labelled on its own, without the voxel map of
   labels that keeps a surface's novel id (``label_fusion.enabled`` off);
 - ``no_pixel_known``: every pixel of a known segment takes the segment's class
@@ -619,8 +622,15 @@ def main() -> None:
                                 "rendered")} if base.label_fusion.enabled else {}),
         **({"no_pixel_known": (with_overrides(base, {"discovery.pixel_known": False}),
                                "rendered")} if base.discovery.pixel_known else {}),
-        **({} if base.discovery.uncertain_region_px else {"uncertain_regions": (
-            with_overrides(base, {"discovery.uncertain_region_px": 1200}), "rendered")}),
+        **({"no_uncertain_regions": (
+            with_overrides(base, {"discovery.uncertain_region_px": 0}), "rendered"),
+            "backbone_logits_no_uncertain_regions": (
+            with_overrides(base, {"discovery.uncertain_region_px": 0}), "logits")}
+           if base.discovery.uncertain_region_px else {}),
+        **({"no_carve": (with_overrides(base, {"discovery.uncertain_region_carve": False}),
+                         "rendered")}
+           if base.discovery.uncertain_region_px and base.discovery.uncertain_region_carve
+           else {}),
     }
     variants.update({name: (cfg, "rendered") for name, (cfg, _) in engine.items()})
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):
