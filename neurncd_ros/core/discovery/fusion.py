@@ -337,9 +337,11 @@ class LabelFusion:
                 lab = np.where(lab == b, a, lab)
         return lab
 
-    def _touching(self, labels: np.ndarray, depth: np.ndarray, points: np.ndarray,
+    def _touching(self, lab: np.ndarray, depth: np.ndarray, points: np.ndarray,
                   mask: np.ndarray) -> None:
-        """Alias novel ids the frame shows as parts of one surface (``touch_share``).
+        """Alias novel ids the frame shows as parts of one surface (``touch_share``);
+        ``lab``: the frame's labels as published (int64, known aliases applied), with at
+        least two novel ids.
 
         Markov clustering gives the parts of one object different ids when their colour
         and entropy differ (a window's bright panes and its frame): the object's pixels
@@ -352,9 +354,6 @@ class LabelFusion:
         The smaller region's id is renamed only if the two touched in at least
         ``alias_frame_share`` of the frames that showed it (counted in :meth:`update`).
         """
-        lab = self._renamed(np.asarray(labels).astype(np.int64))
-        if np.count_nonzero(np.unique(lab) >= NOVEL_ID_START) < 2:
-            return
         z = np.where(mask, depth, 0.0).astype(np.float32)
         outline = np.zeros(int(lab.max()) + 1, np.int64)
         keys = []
@@ -418,11 +417,13 @@ class LabelFusion:
         if labels.shape != np.shape(depth):
             raise ValueError(f"labels are {labels.shape} but depth is {np.shape(depth)}")
         points, mask = backproject(depth, intrinsics, pose)
-        shown = np.unique(self._renamed(labels.astype(np.int64)))
-        for i in shown[shown >= NOVEL_ID_START].tolist():  # alias_frame_share's count
+        published = self._renamed(labels.astype(np.int64))
+        shown = np.unique(published)
+        shown = shown[shown >= NOVEL_ID_START]
+        for i in shown.tolist():  # alias_frame_share's count
             self._shown[i] = self._shown.get(i, 0) + 1
-        if self.cfg.touch_share > 0:
-            self._touching(labels, depth, points, mask)
+        if self.cfg.touch_share > 0 and shown.size >= 2:
+            self._touching(published, depth, points, mask)
         out = labels.astype(np.uint16, copy=True)
         vals = self._fuse(labels[mask].astype(np.int64), points, live_novel)
         out[mask] = vals
