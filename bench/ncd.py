@@ -50,6 +50,9 @@ the report gives the mean over scenes. Rows of the report (percent):
   (``backbone_logits_no_uncertain_regions``) on the backbone's logits; ``no_carve``:
   such regions only where the segmentation left pixels without a segment, not carved
   out of confident segments (``discovery.uncertain_region_carve`` off);
+  ``no_uncertain_clusters``: every novel cluster needs ``min_cluster_pixels``, also
+  one whose mean entropy is above ``uncertain_region_entropy``
+  (``discovery.uncertain_cluster_pixels`` 0);
 - ``no_label_fusion``: every frame labelled on its own, without the voxel map of
   labels that keeps a surface's novel id (``label_fusion.enabled`` off);
 - ``no_pixel_known``: every pixel of a known segment takes the segment's class
@@ -631,6 +634,9 @@ def main() -> None:
                          "rendered")}
            if base.discovery.uncertain_region_px and base.discovery.uncertain_region_carve
            else {}),
+        **({"no_uncertain_clusters": (
+            with_overrides(base, {"discovery.uncertain_cluster_pixels": 0}), "rendered")}
+           if base.discovery.uncertain_cluster_pixels else {}),
     }
     variants.update({name: (cfg, "rendered") for name, (cfg, _) in engine.items()})
     for name, (cfg, source) in tqdm(variants.items(), desc="report rows"):

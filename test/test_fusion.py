@@ -334,6 +334,29 @@ def test_touching_coplanar_novel_ids_are_one_object_and_others_stay_apart():
     assert (out[under] == other).mean() > 0.8 and (out[ceiling] == NOVEL).mean() > 0.8
 
 
+def test_touching_ids_keep_the_id_shown_longer():
+    """An object that appears as a sliver (here a window's panes, one frame alone) and
+    whose bulk gets a fresh, larger id in the next frame keeps the id it was shown with
+    first: the newer id is published as the older, not the smaller as the larger."""
+    panes_id, frame_id = NOVEL + 1, NOVEL + 2
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x, z = _world_x(pose, depth), _world_z(pose, depth)
+    window = (np.abs(x) < 0.4) & (np.abs(z) < 0.3)
+    panes = (np.abs(x) < 0.25) & (np.abs(z) < 0.15)
+    assert (window & ~panes).sum() > 2 * panes.sum()  # the new id is the larger region
+    live = {panes_id, frame_id}
+    fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0))
+    first = np.full((H, W), WALL, np.uint16)
+    first[panes] = panes_id
+    fus.update(first, depth, INTR, pose, live)
+    both = first.copy()
+    both[window & ~panes] = frame_id
+    out = fus.update(both, depth, INTR, pose, live)
+    assert fus.aliases == {frame_id: panes_id}
+    assert (out[window] == panes_id).mean() > 0.95 and not (out == frame_id).any()
+
+
 @pytest.mark.parametrize("rule", ["touch", "share"])
 def test_one_frame_does_not_rename_an_established_id(rule):
     """An id shown for many frames is not renamed by one frame's evidence: here a

@@ -527,17 +527,14 @@ def test_uncertain_region_without_depth_becomes_a_novel_segment():
     assert (off[hole] < NOVEL_ID_START).all()
 
 
-def test_uncertain_region_inside_a_known_segment_is_carved_out():
-    """A picture flush with a wall that the segmentation left inside the wall's segment
-    (no depth step; embedding edges off here), whose embedding is unsure although its
-    argmax is "wall": with ``uncertain_region_carve`` it becomes a segment of its own and
-    gets a novel id. A band of uncertain pixels two pixels wide (an object's border)
-    stays wall, and without the carve so does the picture."""
-    from neurncd_ros.core.discovery.geoseg import GeoSegConfig
+def _flush_picture(picture=(slice(20, 34), slice(30, 50))):
+    """A wall at 2 m with a picture flush with it (no depth step) and a band of
+    uncertainty two pixels wide along the floor's edge: the embedding is unsure on both
+    although its argmax is "wall". Returns depth, embedding, entropy, picture, band."""
     rng = np.random.default_rng(5)
     depth = np.full((H, W), 2.0, np.float32)
     emb = _logits("wall", rng, H * W).reshape(H, W, S)
-    picture, band = (slice(20, 34), slice(30, 50)), (slice(45, 47), slice(5, 75))
+    band = (slice(45, 47), slice(5, 75))
     wall_ch = list(CHANNEL_TO_ID).index(CLASS_ID["wall"])
     for r, c in (picture, band):
         unsure = rng.normal(0, 0.3, (r.stop - r.start, c.stop - c.start, S))
@@ -547,24 +544,75 @@ def test_uncertain_region_inside_a_known_segment_is_carved_out():
     ent = -(p * np.log(p)).sum(-1).astype(np.float32)
     assert (emb[picture].argmax(-1) == wall_ch).mean() > 0.9
     assert ent[picture].mean() > 0.8 * np.log(S) and ent.mean() < 0.6 * np.log(S)
-    intr = Intrinsics.from_hfov(W, H)
+    return depth, emb, ent, picture, band
 
-    def label(carve):
-        cfg = DiscoveryConfig(min_cluster_pixels=50, **{**STAND_IN, "min_cluster_segments": 1,
-                                                          "segment_novelty": True},
-                              uncertain_region_px=300, uncertain_region_entropy=0.6,
-                              uncertain_region_carve=carve,
-                              uncertain_region_opening=24)  # 3 px at W = 80
-        d = Discoverer(cfg, CHANNEL_TO_ID, mcl_cfg=MCLConfig(k=10),
-                       seg_cfg=GeoSegConfig(embedding_edges=False))
-        return d.process(depth, intr, emb, ent)
 
-    lab = label(True)
+def _label_flush(depth, emb, ent, **kw):
+    """One frame through a Discoverer with the uncertain regions on, the picture's region
+    carved (embedding edges off, so the segmentation leaves it in the wall's segment)."""
+    from neurncd_ros.core.discovery.geoseg import GeoSegConfig
+    cfg = DiscoveryConfig(**{**STAND_IN, "min_cluster_segments": 1, "segment_novelty": True,
+                             "min_cluster_pixels": 50, "uncertain_region_px": 300,
+                             "uncertain_region_entropy": 0.6,
+                             "uncertain_region_opening": 24,  # 3 px at W = 80
+                             **kw})
+    d = Discoverer(cfg, CHANNEL_TO_ID, mcl_cfg=MCLConfig(k=10),
+                   seg_cfg=GeoSegConfig(embedding_edges=False))
+    return d.process(depth, Intrinsics.from_hfov(W, H), emb, ent)
+
+
+def test_uncertain_region_inside_a_known_segment_is_carved_out():
+    """A picture flush with a wall that the segmentation left inside the wall's segment,
+    whose embedding is unsure although its argmax is "wall": with
+    ``uncertain_region_carve`` it becomes a segment of its own and gets a novel id. A band
+    of uncertain pixels two pixels wide (an object's border) stays wall, and without the
+    carve so does the picture."""
+    depth, emb, ent, picture, band = _flush_picture()
+    lab = _label_flush(depth, emb, ent, uncertain_region_carve=True)
     vals, counts = np.unique(lab[picture], return_counts=True)
     assert vals[np.argmax(counts)] >= NOVEL_ID_START and counts.max() > 0.9 * lab[picture].size
     assert (lab[band] == CLASS_ID["wall"]).mean() > 0.9
     assert (lab[:15] == CLASS_ID["wall"]).all()
-    assert (label(False)[picture] == CLASS_ID["wall"]).mean() > 0.9
+    off = _label_flush(depth, emb, ent, uncertain_region_carve=False)
+    assert (off[picture] == CLASS_ID["wall"]).mean() > 0.9
+
+
+def test_a_small_very_uncertain_cluster_is_novel_before_min_cluster_pixels():
+    """An object in the first frame it appears in: its carved region (280 px) is below
+    ``min_cluster_pixels`` (500), but its mean entropy is above
+    ``uncertain_region_entropy``, so from ``uncertain_cluster_pixels`` (scaled from the
+    640 px reference width: 6400 -> 100 px at W = 80) it is novel already. Above its size,
+    off, or with the entropy bar above the cluster's mean entropy it is undecided, and
+    painted with its argmax, "wall"."""
+    depth, emb, ent, picture, _ = _flush_picture()
+    assert emb[picture].shape[0] * emb[picture].shape[1] == 280
+
+    def novel_share(**kw):
+        lab = _label_flush(depth, emb, ent, min_cluster_pixels=500, **kw)
+        return float((lab[picture] >= NOVEL_ID_START).mean())
+
+    assert novel_share(uncertain_cluster_pixels=6400) > 0.9
+    assert novel_share(uncertain_cluster_pixels=32000) < 0.1  # 500 px at W = 80
+    assert novel_share(uncertain_cluster_pixels=0) < 0.1
+
+
+@pytest.mark.parametrize("entropy, novel", [(0.95, True), (0.7, False)])
+def test_uncertain_cluster_pixels_needs_the_region_entropy(entropy, novel):
+    """A cluster of 100 px, below ``min_cluster_pixels``, is novel at the smaller
+    ``uncertain_cluster_pixels`` only if its mean entropy is above
+    ``uncertain_region_entropy`` (0.9 log S); one merely above the known/novel threshold
+    (0.7 log S) stays undecided."""
+    from neurncd_ros.core.discovery.labeller import UNDECIDED, _Memory
+    d = Discoverer(DiscoveryConfig(min_cluster_pixels=500, uncertain_cluster_pixels=64,
+                                   uncertain_region_entropy=0.9), CHANNEL_TO_ID)
+    hist = np.zeros((1, S), np.int64)
+    hist[0, list(CHANNEL_TO_ID).index(CLASS_ID["wall"])] = 100
+    d._mem = _Memory(uid=np.zeros(1, np.int64), frame=np.zeros(1, np.int64),
+                     desc=np.zeros((1, 4), np.float32), pixels=np.array([100]),
+                     ent_sum=np.array([entropy * np.log(S) * 100]), hist=hist,
+                     cluster=np.zeros(1, np.int64))
+    label = int(d.name_clusters(np.zeros(1, np.int64))[0])
+    assert (label >= NOVEL_ID_START) if novel else (label == UNDECIDED)
 
 
 def _uncertain_memory(d, desc):
