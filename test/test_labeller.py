@@ -596,21 +596,26 @@ def test_a_small_very_uncertain_cluster_is_novel_before_min_cluster_pixels():
     assert novel_share(uncertain_cluster_pixels=0) < 0.1
 
 
-@pytest.mark.parametrize("entropy, novel", [(0.95, True), (0.7, False)])
-def test_uncertain_cluster_pixels_needs_the_region_entropy(entropy, novel):
+@pytest.mark.parametrize("entropy, age, novel", [(0.95, 0, True), (0.7, 0, False),
+                                                 (0.95, 3, True), (0.95, 4, False)])
+def test_uncertain_cluster_pixels_needs_the_region_entropy_and_a_new_cluster(entropy, age,
+                                                                           novel):
     """A cluster of 100 px, below ``min_cluster_pixels``, is novel at the smaller
     ``uncertain_cluster_pixels`` only if its mean entropy is above
-    ``uncertain_region_entropy`` (0.9 log S); one merely above the known/novel threshold
-    (0.7 log S) stays undecided."""
+    ``uncertain_region_entropy`` (0.9 log S; one merely above the known/novel threshold,
+    0.7 log S, stays undecided) and its segments are at most ``uncertain_cluster_frames``
+    (3) frames old: an object that has just come into view, not an old fragment."""
     from neurncd_ros.core.discovery.labeller import UNDECIDED, _Memory
     d = Discoverer(DiscoveryConfig(min_cluster_pixels=500, uncertain_cluster_pixels=64,
-                                   uncertain_region_entropy=0.9), CHANNEL_TO_ID)
+                                   uncertain_region_entropy=0.9, uncertain_cluster_frames=3),
+                   CHANNEL_TO_ID)
     hist = np.zeros((1, S), np.int64)
     hist[0, list(CHANNEL_TO_ID).index(CLASS_ID["wall"])] = 100
     d._mem = _Memory(uid=np.zeros(1, np.int64), frame=np.zeros(1, np.int64),
                      desc=np.zeros((1, 4), np.float32), pixels=np.array([100]),
                      ent_sum=np.array([entropy * np.log(S) * 100]), hist=hist,
                      cluster=np.zeros(1, np.int64))
+    d._frames = age  # the frame being labelled; the segment came in frame 0
     label = int(d.name_clusters(np.zeros(1, np.int64))[0])
     assert (label >= NOVEL_ID_START) if novel else (label == UNDECIDED)
 
