@@ -74,7 +74,7 @@ seeds 500-509: all / novel 77.82 / 58.72 without, 80.28 / 67.53 with, novel-id
 stability 0.924 -> 0.919 (bench/results/ncd_sweep_discovery_uncertain_region_*.json).
 On the test scenes stability fell further, 0.917 -> 0.878, as objects once called
 wall in every frame were found after their first few (README, Limits); with
-``uncertain_cluster_pixels`` it is 0.911 there (bench/results/ncd.json).
+``uncertain_cluster_pixels`` it is 0.909 there (bench/results/ncd.json).
 Why ``uncertain_cluster_pixels``: in the frames where such an object first
 appears, its carved region is a cluster of 100-350 pixels at 320x240 (a picture,
 the edge of a window), below ``min_cluster_pixels``, so it was left undecided and
