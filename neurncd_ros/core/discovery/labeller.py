@@ -90,7 +90,8 @@ the cluster is new (``uncertain_cluster_frames``): on the tuning walks of
 small uncertain clusters decided at that size became ids of their own beside their
 object's (a picture split 0.56 / 0.43 between two ids on seed 500), and novel mIoU fell
 1-3 points; restricted to clusters whose segments are at most 3 frames old the walks
-score as without the rule or better, and the 150-frame scenes as with it (frames 0 / 1 /
+score within a point of novel mIoU of the rule off (bench/results/discovery_memory*.json),
+and the 150-frame scenes as with it unrestricted (frames 0 / 1 /
 3 / 6 / 10: all 80.45 / 80.57 / 80.67 / 80.67 / 80.67,
 bench/results/ncd_sweep_discovery_uncertain_cluster_frames.json).
 Every pixel of a processed frame gets a label: segment pixels get their
