@@ -212,6 +212,15 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     h = lambda p: -sum(x * np.log(x) for x in p)  # noqa: E731
     assert np.allclose(h_views, [(np.log(2) + h((0.75, 0.25))) / 2], atol=1e-4)
     assert h((5 / 8, 3 / 8)) - h_views[0] > 0.03
+    # The frame's own view counted twice: (2 (1/2, 1/2) + (3/4, 1/4)) / 3 = (7/12, 5/12);
+    # still two views seen, and the mean entropy weighted alike.
+    fused, n, h_views = fuse_keyframes(points[:1], own[:1], [other], 0.05, logit_channels=2,
+                                       view_entropy=True, own_weight=2.0)
+    assert n.tolist() == [2.0] and np.allclose(fused, np.log([[7 / 12, 5 / 12]]), atol=1e-3)
+    assert np.allclose(h_views, [(2 * np.log(2) + h((0.75, 0.25))) / 3], atol=1e-4)
+    # A point no other view sees keeps the frame's own embedding, whatever its weight.
+    fused, n, _ = fuse_keyframes(points[1:2], own[1:2] + 1.0, [other], 0.05, own_weight=2.0)
+    assert n.tolist() == [1.0] and np.allclose(fused, 1.0)
 
 
 def test_fusion_inputs_reuse_each_views_probabilities_and_forget_views_no_longer_read():

@@ -236,7 +236,7 @@ def _seen(points: np.ndarray, keyframes: list, tolerance: float,
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None,
                    view_entropy: bool = False, inputs: FusionInputs | None = None,
-                   visibility: ViewVisibility | None = None
+                   visibility: ViewVisibility | None = None, own_weight: float = 1.0
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
@@ -253,7 +253,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     ``inputs`` keeps each keyframe's probabilities between renderings (the softmax of
     a stored view is then computed once, not per rendering); None computes them here.
     ``visibility``: the test already done for these keyframes on these points (the
-    view's depth pixels, :func:`view_visibility`); None tests here.
+    view's depth pixels, :func:`view_visibility`); None tests here. ``own_weight``: how
+    many views the frame's own embedding counts as in the mean (and in the mean entropy):
+    the other views reach a point through their poses and depths, whose small errors
+    shift it by a pixel or two, which blurs small objects and borders; the frame itself
+    sees every point where it is.
 
     This is the multi-view evidence the field is trained on, read directly: until
     the field has learnt a point, the view's embedding there is the mean over the
@@ -268,6 +272,10 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
         h_sum = entropy(acc[:, :S]).astype(np.float64)
     if S:
         acc[:, :S] = softmax(acc[:, :S])
+    if own_weight != 1.0:
+        acc *= own_weight
+        if h_sum is not None:
+            h_sum *= own_weight
     n = np.ones(len(points), np.float32)
     seen = _seen(points, keyframes, tolerance, visibility)
     for kf, (idx, ui, vi, _, _) in zip(keyframes, seen):
@@ -288,10 +296,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
             h_sum += ent[rows]
         acc += np.take(probs, rows, axis=0)
         n[idx] += 1.0
-    acc /= n[:, None]
+    acc /= (n + (own_weight - 1.0))[:, None]
     if S:
         acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
-    return acc, n, (None if h_sum is None else (h_sum / n).astype(np.float32))
+    return acc, n, (None if h_sum is None
+                    else (h_sum / (n + (own_weight - 1.0))).astype(np.float32))
 
 
 def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyframes: list,
