@@ -25,7 +25,9 @@ frame's embedding but, per pixel, the mean over the frame and the stored
 keyframes that see its 3D point (the same visibility test as the coverage),
 averaged as class probabilities (``fusion``), so the view's entropy is the
 predictive entropy over the views: it rises where views disagree, which a
-single frame cannot show. On the live schedule (``run.training_rate_hz``) the
+single frame cannot show. The frame's own embedding counts ``own_view_weight``
+times: the other views reach its points through poses and depths a pixel or
+two off, and small objects blur in their mean. On the live schedule (``run.training_rate_hz``) the
 field rarely matures within a short sequence, so this fusion is what the
 multi-view map contributes there (bench/results/ncd.json, rows
 ``fallback_backbone`` and ``backbone_logits``).
