@@ -43,11 +43,12 @@ the report gives the mean over scenes. Rows of the report (percent):
   ``disagreement_2``: the views' disagreement added twice to the view's entropy
   (``mapper_node.disagreement_weight`` 2, off by default); ``fusion_unweighted``: the
   frame's own view counted once in the fusion, as every other view
-  (``mapper_node.own_view_weight`` 1), with the looser visibility test of before
-  (``coverage_depth_tolerance`` 0.05); ``no_novelty_branch``:
-  the backbone's known-class logits without its outlier-exposed novelty branch
-  (``backbone.novelty_branch`` false: the same argmax, the head's own entropy,
-  with the entropy threshold tuned for it, 0.15) (these rows render the scenes again);
+  (``mapper_node.own_view_weight`` 1), with the looser visibility test and the fewer
+  recent frames of before (``coverage_depth_tolerance`` 0.05, ``fusion_recent`` 8);
+  ``no_novelty_branch``: the backbone's known-class logits without its outlier-exposed
+  novelty branch (``backbone.novelty_branch`` false: the same argmax, the head's own
+  entropy, with the entropy threshold tuned for it, 0.15) (these rows render the scenes
+  again);
 - ``no_uncertain_regions``: no large uncertain regions as segments of their own
   (``discovery.uncertain_region_px`` 0), on the rendered views and
   (``backbone_logits_no_uncertain_regions``) on the backbone's logits; ``no_carve``:
@@ -375,10 +376,11 @@ def engine_rows(base: config.Config) -> dict[str, dict]:
         if base.mapper_node.fusion == "probabilities" and base.mapper_node.disagreement_weight == 0:
             rows["disagreement_2"] = {"mapper_node.disagreement_weight": 2.0}
         if base.mapper_node.own_view_weight != 1.0:
-            # The fusion before the frame's own view was weighted (and its visibility test
-            # was 0.05 m + 3 %).
+            # The fusion before the frame's own view was weighted (its visibility test
+            # was 0.05 m + 3 %, and it fused the 8 most recent frames).
             rows["fusion_unweighted"] = {"mapper_node.own_view_weight": 1.0,
-                                         "mapper_node.coverage_depth_tolerance": 0.05}
+                                         "mapper_node.coverage_depth_tolerance": 0.05,
+                                         "mapper_node.fusion_recent": 8}
     return rows
 
 
