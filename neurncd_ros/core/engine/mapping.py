@@ -1,5 +1,8 @@
 """Mapper stage: frames with their embedding in, keyframes to the field, views out.
 
+(One module, over 500 lines: the stage's pairing, keyframe queue and rendering share one
+lock and one set of queues, and its documented parameters sit beside the code they steer.)
+
 Which views are rendered, in this order (``next_view``):
 
 1. every keyframe the field admits (never dropped: a keyframe's view is
