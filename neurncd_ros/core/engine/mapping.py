@@ -30,10 +30,10 @@ averaged as class probabilities (``fusion``), so the view's entropy is the
 predictive entropy over the views: it rises where views disagree, which a
 single frame cannot show. The frame's own embedding counts ``own_view_weight``
 times: the other views reach its points through poses and depths a pixel or
-two off, and small objects blur in their mean. On the live schedule (``run.training_rate_hz``) the
-field rarely matures within a short sequence, so this fusion is what the
-multi-view map contributes there (bench/results/ncd.json, rows
-``fallback_backbone`` and ``backbone_logits``).
+two off, and small objects blur in their mean. On the live schedule
+(``run.training_rate_hz``) the field rarely matures within a short sequence, so
+this fusion is what the multi-view map contributes there (bench/results/ncd.json,
+rows ``fallback_backbone`` and ``backbone_logits``).
 
 The view's depth, which discovery cuts into convex segments, is the multi-view map's too
 (``depth_fusion``): the measured depth averaged, pixel by pixel, with what the nearest

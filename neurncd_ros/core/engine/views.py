@@ -296,11 +296,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
             h_sum += ent[rows]
         acc += np.take(probs, rows, axis=0)
         n[idx] += 1.0
-    acc /= (n + (own_weight - 1.0))[:, None]
+    weights = n + (own_weight - 1.0)  # the views, the frame's own counted own_weight times
+    acc /= weights[:, None]
     if S:
         acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
-    return acc, n, (None if h_sum is None
-                    else (h_sum / (n + (own_weight - 1.0))).astype(np.float32))
+    return acc, n, (None if h_sum is None else (h_sum / weights).astype(np.float32))
 
 
 def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyframes: list,
