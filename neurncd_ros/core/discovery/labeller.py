@@ -32,7 +32,7 @@ Per processed frame (:meth:`Discoverer.process`):
    ``mcl.inflation``), so a confident majority cannot absorb an uncertain
    minority that leans to its class (a picture the backbone half calls wall).
    With ``mode_split`` (off by default since ``pixel_known`` and the label fusion:
-   tuning seeds all 75.15 -> 75.40, known 83.70 -> 84.02 without it,
+   tuning seeds all 80.94 -> 81.16, known 85.34 -> 85.74 without it at 01c25d0,
    bench/results/ncd_sweep_discovery_mode_split.json) a known cluster that holds at most
    ``mode_split_share`` of the pixels of the largest known cluster of its class
    and whose pixel-weighted mean descriptor (colour part included) is more than
