@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 
 import cv2
@@ -366,6 +368,28 @@ def test_background_training_while_adding_and_rendering(synthetic):
     assert len(ids) == len(set(ids)) == len(m.buffer)  # each keyframe published once
     m.reset()
     assert m.iterations == 0 and len(m.buffer) == 0
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice value")
+def test_training_thread_alone_takes_train_nice(synthetic):
+    """mapper.train_nice renices the training thread, not the process that renders."""
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    m = Mapper(MapperConfig(train_nice=7), classes.NUM_KNOWN,
+               backend_cfg=FastConfig(rays_per_iteration=128))
+    m.add_keyframe(synthetic[0], _gt_embedding(synthetic[0].semantic,
+                                               np.random.default_rng(0)), force=True)
+    m.start()
+    try:
+        deadline = time.time() + 60
+        while m.iterations < 2 and time.time() < deadline and m.last_error is None:
+            time.sleep(0.02)
+        assert m.iterations >= 2, m.last_error
+        assert os.getpriority(os.PRIO_PROCESS, m._thread.native_id) == min(19, own + 7)
+        assert os.getpriority(os.PRIO_PROCESS, 0) == own
+        out = m.render(synthetic[0].pose, synthetic[0].intrinsics, 15, 20)
+        assert np.isfinite(out["embedding"]).all()
+    finally:
+        m.stop()
 
 
 def test_bounds_grow_and_keep_what_was_learnt(synthetic):
