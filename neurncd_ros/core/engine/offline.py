@@ -45,9 +45,9 @@ class RunConfig:
 
     training_rate_hz: float = param(2.5, "field training iterations per second of stream "
                                     "time, as the mapper node trains beside the other nodes "
-                                    "on 2 cores (bench/graph.py measures it: 2.2 and 2.8 "
-                                    "with the training thread at mapper.train_nice 10, 5.1 "
-                                    "at 0)", lo=0.0, hi=100000.0, unit="Hz")
+                                    "on 2 cores (bench/graph.py measures it: 2.2 with the "
+                                    "training thread at mapper.train_nice 10, the median of "
+                                    "5 runs; 5.7 at 0)", lo=0.0, hi=100000.0, unit="Hz")
     view_rate_hz: float = param(3.0, "views rendered and labelled per second of stream time, "
                                 "keyframes included: every keyframe is labelled, another "
                                 "frame when the last label is at least 1 / this old (the "

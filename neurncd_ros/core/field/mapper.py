@@ -113,10 +113,11 @@ class MapperConfig:
                             "where a thread has its own; elsewhere ignored): on a busy "
                             "machine the embedding, the views and discovery run first and "
                             "the field trains on the idle CPU (0 = as any thread). Live "
-                            "graph on 2 cores (bench/graph.py, two runs each): 0 gives "
-                            "1.51-1.68 labels/s, latency median 4.9-5.7 s, 5.1 field "
-                            "iterations/s; 10 gives 2.09-2.11, 3.1-3.4 s, 2.2-2.8; 19 "
-                            "gives 2.16-2.19, 2.8-3.1 s, 1.6", lo=0, hi=19)
+                            "graph on 2 cores, medians of 5 interleaved runs "
+                            "(bench/results/graph_sweep_mapper_train_nice.json): at 0 "
+                            "1.74 labels/s, latency median 5.48 s (p95 6.27), 5.7 field "
+                            "iterations/s; at 10 1.86 labels/s, 4.21 s (4.96), 2.2 "
+                            "iterations/s", lo=0, hi=19)
     num_threads: int = param(1, "torch intra-op threads the executable running the mapper "
                              "sets (0 = leave torch's setting); 1 because the nodes share "
                              "the cores (README, Limits)", lo=0, hi=256)
