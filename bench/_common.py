@@ -17,3 +17,23 @@ def commit() -> str:
             else "uncommitted"
     except (OSError, subprocess.SubprocessError):
         return "uncommitted"
+
+
+def parse_sweep(spec: str) -> tuple[str, list[tuple[str, dict, object]]]:
+    """A benchmark's ``--sweep SECTION.KEY=V1,V2,...``: the key and, per value, its text,
+    its override and the configuration it gives. Every value is checked against the schema
+    here, before any run, so a bad one stops the benchmark at once, naming it, rather
+    than minutes later in a node or a worker."""
+    from neurncd_ros import config
+
+    key, sep, raw = spec.partition("=")
+    if not sep or "." not in key or not raw:
+        raise SystemExit(f"--sweep {spec!r}: expected SECTION.KEY=V1,V2,...")
+    out = []
+    for v in raw.split(","):
+        over = config.parse_overrides([f"{key}={v}"])
+        try:
+            out.append((v, over, config.load(None, over)))
+        except config.ConfigError as err:
+            raise SystemExit(f"--sweep {spec!r}: {err}") from None
+    return key, out

@@ -54,7 +54,7 @@ from neurncd_ros.core.discovery.metrics import Evaluator, IdStability  # noqa: E
 from neurncd_ros.core.uncertainty import entropy  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, parse_sweep  # noqa: E402  (bench/ is on sys.path)
 
 RESULTS = REPO / "bench" / "results"
 WINDOW = 25
@@ -197,15 +197,8 @@ def main() -> int:
     base = config.load(None, {})
     variants = [("default", base, {})]
     if args.sweep:
-        if "=" not in args.sweep:
-            raise SystemExit(f"--sweep {args.sweep!r}: expected SECTION.KEY=V1,V2,...")
-        key, raw = args.sweep.split("=", 1)
-        for v in raw.split(","):
-            over = config.parse_overrides([f"{key}={v}"])
-            try:
-                variants.append((f"{key}={v}", config.load(None, over), over))
-            except config.ConfigError as err:
-                raise SystemExit(f"--sweep {args.sweep!r}: {err}") from None
+        key, parsed = parse_sweep(args.sweep)
+        variants += [(f"{key}={v}", cfg, over) for v, over, cfg in parsed]
     frames = walk(base, args.frames, seed)
     runs = []
     for name, cfg, over in variants:

@@ -61,7 +61,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, parse_sweep  # noqa: E402  (bench/ is on sys.path)
 
 RESULTS = REPO / "bench" / "results"
 DOMAIN = 88
@@ -391,6 +391,11 @@ def main() -> None:
     from neurncd_ros.core.data.bag import FrameReader
     from neurncd_ros.synth import seeds
 
+    if args.sweep:  # every value checked before the bag is made
+        key, parsed = parse_sweep(args.sweep)
+        values = [v for v, _, _ in parsed]
+        if args.repeat < 1:
+            raise SystemExit(f"--repeat {args.repeat}: at least 1 round")
     seed = seeds.TEST[0] if args.seed is None else args.seed
     odometry = args.poses == "odometry"
     name = "graph_odometry" if odometry else "graph"
@@ -400,10 +405,6 @@ def main() -> None:
     frames = {f.stamp_ns: f for f in FrameReader(bag, with_poses=not odometry)}
     params = (["mapper_node.pose_source:=odometry"] if odometry else []) + args.set
     if args.sweep:
-        key, _, vals = args.sweep.partition("=")
-        values = [v for v in vals.split(",") if v]
-        if not key or not values or args.repeat < 1:
-            raise SystemExit("--sweep needs SECTION.KEY=V1,V2,... and --repeat >= 1")
         res = sweep(bag, work, params, key, values, args.repeat, frames, seed, args.frames,
                     odometry)
         res["cores"] = os.cpu_count()
