@@ -66,6 +66,20 @@ def test_health_throttles_each_kind_of_problem_on_its_own():
     assert lines[-1][0] == H.ERROR
 
 
+def test_a_note_is_logged_at_info_and_leaves_the_diagnostics_ok():
+    """A decision the stage took (the pose source chosen) is logged, not reported as a
+    problem: a healthy run's diagnostics stay OK."""
+    clock, lines = Clock(), []
+    h = H.Health("x", lambda level, text: lines.append((level, text)), clock=clock)
+    h.set_state("running")
+    h.note("pose_source", "pose source: topic (pose_source auto)")
+    h.note("pose_source", "pose source: topic (pose_source auto)")   # throttled
+    assert lines == [(H.OK, "pose source: topic (pose_source auto)")]
+    assert not h.problems and h.counts["note.pose_source"] == 2
+    snap = h.snapshot()
+    assert snap["level"] == H.OK and snap["message"] == "running"
+
+
 def test_health_rates_count_events_per_second():
     clock = Clock()
     h = H.Health("x", throttle_s=1.0, window_s=10.0, clock=clock)
@@ -705,3 +719,45 @@ def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):
     assert st.health.problems["starved"] >= 1
     text = next(t for t in logged if "waiting for" in t)
     assert text.startswith("waiting for embedding:") and "embedding node runs" in text
+
+
+def test_mapper_stage_drops_a_far_future_stamp_and_reports_a_frame_without_pose(
+        cfg, backbone, frames):
+    """One frame stamped 10^6 s ahead (a driver's glitch) is dropped and reported; the
+    frames after it are paired and keyframes are still admitted by time, instead of every
+    later frame being older than the bad one. A frame whose pose never comes is named in
+    a problem report, not only counted."""
+    clock = Clock()
+    st = MapperStage(cfg.mapper_node, mapper_factory(cfg), online=False, clock=clock)
+    logged = []
+    st.health._log = lambda level, text: logged.append(text)
+    st.offer_info(frames[0].intrinsics)
+    sec = 1000 * MS
+
+    def send(f, stamp, streams=("pose", "color", "depth", "embedding")):
+        values = {"pose": f.pose, "color": f.rgb, "depth": f.depth,
+                  "embedding": EmbeddingRecord(stamp, backbone.embed(f.rgb, f.depth),
+                                               backbone.spec)}
+        jobs = []
+        for s in streams:
+            jobs += st.offer(s, stamp, values[s])
+        return jobs
+
+    good = [sec + k * sec // 2 for k in range(10)]   # one frame every 0.5 s
+    jobs = []
+    for k, stamp in enumerate(good):
+        clock.t = 0.1 * k
+        if k == 3:
+            assert send(frames[3], stamp + 10**6 * sec) == []
+        jobs += send(frames[k], stamp)
+    assert st.health.problems["jump"] == 4 and st.sync.resets == 0
+    assert any("ahead of the last frame paired" in t for t in logged), logged
+    assert st.health.counts["frames_paired"] == 10
+    assert [j.frame.stamp_ns for j in jobs] == good
+    assert [s for s in st.keyframe_stamps if s > good[3]], st.keyframe_stamps
+    # A frame whose pose never comes: reported once it expires.
+    send(frames[10], good[-1] + sec, streams=("color", "depth", "embedding"))
+    clock.t += 2 * cfg.mapper_node.sync_horizon_s
+    send(frames[11], good[-1] + 2 * sec)
+    assert st.health.problems["unpaired"] == 1
+    assert any("nothing came on pose" in t for t in logged), logged

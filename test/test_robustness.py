@@ -192,12 +192,15 @@ def _malformed(g: Graph, rng: np.random.Generator, kind: str) -> None:
         g.send_frame(int(rng.integers(60)), stamp=s)
     elif kind == "out_of_order_stamp":
         g.send_frame(int(rng.integers(60)), stamp=int(rng.integers(1, 40)) * SEC)
+    elif kind == "far_future_stamp":  # a driver's glitch: one frame 10^6 s ahead
+        g.send_frame(int(rng.integers(60)), stamp=g.next_stamp + 10**6 * SEC)
     else:
         raise AssertionError(kind)
 
 
 KINDS = ("unknown_encoding", "size_mismatch", "bad_depth", "bad_pose", "bad_camera_info",
-         "bad_embedding", "bad_view", "duplicate_stamp", "out_of_order_stamp")
+         "bad_embedding", "bad_view", "duplicate_stamp", "out_of_order_stamp",
+         "far_future_stamp")
 
 
 @pytest.fixture(scope="module")
@@ -243,6 +246,7 @@ def test_500_malformed_messages_kill_no_node_and_labels_go_on(graph):
         "bad_view": "view",
         "duplicate_stamp": "a second message with stamp",
         "out_of_order_stamp": "older than a frame already paired",
+        "far_future_stamp": "ahead of the last frame paired",
     }
     missing = {k: v for k, v in expect.items() if v not in every}
     assert not missing, missing

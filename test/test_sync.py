@@ -60,6 +60,67 @@ def test_a_timeline_that_keeps_going_back_restarts_the_pairing():
     assert len(groups) >= 8 and groups[-1][0] == 19 * MS
 
 
+def test_one_far_future_stamp_is_dropped_and_the_timeline_goes_on():
+    """A driver's glitch stamps one frame 10^6 s ahead: it is dropped as a jump and
+    reported, and the good frames after it pair as before (it does not become the
+    timeline that every later frame would be older than)."""
+    seen = []
+    s = sync.StampSync(("depth", "color"), tolerance_ns=MS, reset_after=4,
+                       max_jump_ns=30_000 * MS, on_anomaly=lambda *a: seen.append(a))
+    for k in range(5):
+        s.add("depth", (1000 + 33 * k) * MS, k)
+        s.add("color", (1000 + 33 * k) * MS, k)
+    bad = (1000 + 10**9) * MS
+    assert s.add("depth", bad, "bad") == [] and s.add("color", bad, "bad") == []
+    assert s.drops["jump"] == 2 and s.resets == 0
+    assert seen[0][:3] == ("depth", "jump", bad) and seen[0][3].endswith(" s")
+    groups = []
+    for k in range(5, 10):
+        groups += s.add("depth", (1000 + 33 * k) * MS, k)
+        groups += s.add("color", (1000 + 33 * k) * MS, k)
+    assert [g[1]["depth"] for g in groups] == [5, 6, 7, 8, 9]
+    assert s.drops["out_of_order"] == 0
+
+
+def test_stamps_that_keep_jumping_ahead_restart_the_pairing():
+    """A new bag (or a camera restarted after a long pause) jumps ahead for good: after
+    reset_after such messages the pairing follows the new timeline."""
+    s = sync.StampSync(("depth", "color"), tolerance_ns=MS, reset_after=4,
+                       max_jump_ns=30_000 * MS)
+    s.add("depth", 0, 0)
+    s.add("color", 0, 0)
+    groups = []
+    for k in range(6):
+        groups += s.add("depth", (100_000 + 33 * k) * MS, k)
+        groups += s.add("color", (100_000 + 33 * k) * MS, k)
+    assert s.resets == 1 and s.drops["jump"] == 3
+    assert [g[1]["depth"] for g in groups] == [2, 3, 4, 5]
+    unlimited = sync.StampSync(("depth",), tolerance_ns=MS)  # max_jump_ns 0: no limit
+    unlimited.add("depth", 0, 0)
+    assert unlimited.add("depth", 10**18, 1) == [(10**18, {"depth": 1})]
+
+
+def test_a_reference_message_that_expires_unpaired_names_the_missing_streams():
+    """After the streams have paired once, a frame whose pose never comes is reported
+    with the stream it waited for; before the first group (partners sent before the
+    node subscribed) nothing is reported."""
+    clock = Clock()
+    seen = []
+    s = sync.StampSync(("embedding", "color", "pose"), tolerance_ns=MS, horizon_s=1.0,
+                       clock=clock, on_anomaly=lambda *a: seen.append(a))
+    s.add("embedding", 0, "e0")                             # its partners never come
+    clock.t = 2.0
+    s.add("color", 100 * MS, "c1")
+    s.add("pose", 100 * MS, "p1")
+    assert s.add("embedding", 100 * MS, "e1")[0][0] == 100 * MS
+    assert seen == [] and s.drops["expired"] == 1
+    s.add("embedding", 200 * MS, "e2")
+    s.add("color", 200 * MS, "c2")                          # no pose for this frame
+    clock.t = 4.0
+    s.add("color", 300 * MS, "c3")
+    assert seen == [("embedding", "expired", 200 * MS, "pose")]
+
+
 def test_unmatched_messages_expire_and_memory_is_bounded():
     clock = Clock()
     s = sync.StampSync(("depth", "embedding", "color"), tolerance_ns=MS, horizon_s=1.0,

@@ -82,20 +82,32 @@ class StampSync:
     - a message older than the last group (minus the tolerance) can never be
       paired any more and is dropped as out of order, unless stamps keep going
       back (``reset_after`` such messages in a row, e.g. a bag replayed in a loop,
-      or a clock reset): then the pairing restarts on the new timeline.
+      or a clock reset): then the pairing restarts on the new timeline;
+    - with ``max_jump_ns``, a message more than that ahead of the last group is
+      dropped as a jump, unless stamps keep jumping (``reset_after`` such messages
+      in a row: a new bag, a camera restarted after a long pause): then the pairing
+      restarts on the new timeline. One frame with a corrupt stamp (a driver's
+      glitch, 10^6 s ahead) would otherwise become the timeline: every later good
+      frame would be older than it and dropped until the reset, and the stages'
+      stamp-based decisions (a keyframe every ``max_interval`` of stamp time) would
+      wait for the stream to catch up with the bad stamp.
 
     Every drop is counted by reason in :attr:`drops`; duplicates, out-of-order
-    stamps and time resets are also passed to ``on_anomaly(stream, reason,
-    stamp_ns)`` (the stages report them as problems); :meth:`starved` names
-    streams that do not arrive while others do (a wrong topic name or stamps
-    that never agree), which a node reports in a warning.
+    stamps, jumps and time resets are also passed to ``on_anomaly(stream, reason,
+    stamp_ns, detail)`` (the stages report them as problems), and so is a message of
+    the reference stream that expires unpaired once the streams have paired before
+    (``detail`` names the streams that had no message near its stamp: a frame whose
+    pose never came is reported, not only counted; before the first group, partners
+    sent before the node subscribed are expected to be missing and are not);
+    :meth:`starved` names streams that do not arrive while others do (a wrong topic
+    name or stamps that never agree), which a node reports in a warning.
     """
 
-    REASONS = ("expired", "superseded", "overflow", "duplicate", "out_of_order")
+    REASONS = ("expired", "superseded", "overflow", "duplicate", "out_of_order", "jump")
 
     def __init__(self, streams: Sequence[str], tolerance_ns: int, horizon_s: float = 2.0,
                  capacity: int = 64, reset_after: int = 10, clock=None,
-                 on_anomaly=None) -> None:
+                 on_anomaly=None, max_jump_ns: int = 0) -> None:
         import collections
         import time
 
@@ -106,6 +118,7 @@ class StampSync:
         self.horizon_s = float(horizon_s)
         self.capacity = int(capacity)
         self.reset_after = int(reset_after)
+        self.max_jump_ns = int(max_jump_ns)
         self._clock = clock or time.monotonic
         # stream -> list of (stamp, arrival time, value), kept sorted by stamp
         self._pending: dict[str, list[tuple[int, float, Any]]] = {s: [] for s in streams}
@@ -115,12 +128,13 @@ class StampSync:
         self.resets = 0
         self.last_stamp: int | None = None
         self._backwards = 0
+        self._jumps = 0
         self._since_group = collections.Counter()
         self._on_anomaly = on_anomaly
 
-    def _anomaly(self, stream: str, reason: str, stamp_ns: int) -> None:
+    def _anomaly(self, stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         if self._on_anomaly is not None:
-            self._on_anomaly(stream, reason, stamp_ns)
+            self._on_anomaly(stream, reason, stamp_ns, detail)
 
     def _drop(self, stream: str, reason: str, n: int = 1) -> None:
         if n:
@@ -147,9 +161,21 @@ class StampSync:
             q.clear()
         self.last_stamp = None
         self._backwards = 0
+        self._jumps = 0
         self._since_group.clear()
 
+    def _missing(self, stamp_ns: int) -> list[str]:
+        """The streams with no pending message within the tolerance of ``stamp_ns``."""
+        return [s for s in self.streams[1:]
+                if not any(abs(e[0] - stamp_ns) <= self.tolerance_ns for e in self._pending[s])]
+
     def _expire(self, now: float) -> None:
+        ref = self.streams[0]
+        for e in self._pending[ref]:
+            if now - e[1] > self.horizon_s and self.groups:
+                missing = self._missing(e[0])
+                if missing:
+                    self._anomaly(ref, "expired", e[0], ", ".join(missing))
         for s, q in self._pending.items():
             keep = [e for e in q if now - e[1] <= self.horizon_s]
             if len(keep) != len(q):
@@ -174,8 +200,20 @@ class StampSync:
             self.resets += 1
             self._anomaly(stream, "time_reset", stamp_ns)
             self.reset()
+        elif (self.last_stamp is not None and self.max_jump_ns > 0
+              and stamp_ns > self.last_stamp + self.max_jump_ns):
+            self._jumps += 1
+            if self._jumps < self.reset_after:
+                self._drop(stream, "jump")
+                self._anomaly(stream, "jump", stamp_ns,
+                              f"{(stamp_ns - self.last_stamp) / 1e9:.3g} s")
+                return []
+            self.resets += 1
+            self._anomaly(stream, "time_reset", stamp_ns)
+            self.reset()
         else:
             self._backwards = 0
+            self._jumps = 0
         queue = self._pending[stream]
         if any(s == stamp_ns for s, _, _ in queue):
             self._drop(stream, "duplicate")

@@ -39,6 +39,12 @@ class DiscoveryNodeConfig:
                                      unit="ms")
     sync_horizon_s: float = param(10.0, "how long a piece of a view waits for the rest",
                                   lo=0.01, hi=600.0, unit="s")
+    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
+                                   "frame paired is dropped as a bad stamp (a driver "
+                                   "glitch), unless stamps keep jumping (10 messages in a "
+                                   "row: a new bag, a camera restarted after a pause), when "
+                                   "pairing restarts on the new timeline (0 = no limit)",
+                                   lo=0.0, hi=1e9, unit="s")
     spec_wait_s: float = param(30.0, "how long views wait for the embedding spec before "
                                "they are dropped", lo=0.0, hi=3600.0, unit="s")
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
@@ -84,7 +90,8 @@ class DiscoveryStage:
                                        clock=clock)
         self.sync = StampSync(self.STREAMS, int(node_cfg.sync_tolerance_ms * 1e6),
                               node_cfg.sync_horizon_s, capacity=4 * node_cfg.queue_size,
-                              clock=clock, on_anomaly=sync_reporter(self.health))
+                              clock=clock, on_anomaly=sync_reporter(self.health),
+                              max_jump_ns=int(node_cfg.sync_max_jump_s * 1e9))
         self.spec: EmbeddingSpec | None = None
         self.discoverer = None
         self._queue: collections.deque[ViewInput] = collections.deque()

@@ -38,6 +38,12 @@ class EmbeddingNodeConfig:
                                      lo=0.0, hi=1000.0, unit="ms")
     sync_horizon_s: float = param(1.0, "how long a colour or depth image waits for its "
                                   "partner", lo=0.01, hi=60.0, unit="s")
+    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
+                                   "frame paired is dropped as a bad stamp (a driver "
+                                   "glitch), unless stamps keep jumping (10 messages in a "
+                                   "row: a new bag, a camera restarted after a pause), when "
+                                   "pairing restarts on the new timeline (0 = no limit)",
+                                   lo=0.0, hi=1e9, unit="s")
     queue_size: int = param(5, "subscription depth; older frames are dropped", lo=1, hi=100)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind "
                                   "of problem", lo=0.0, hi=3600.0, unit="s")
@@ -54,7 +60,8 @@ class EmbeddingStage:
         self.health = health or Health("embedding", throttle_s=cfg.log_throttle_s)
         self.sync = StampSync(("depth", "color"), int(cfg.sync_tolerance_ms * 1e6),
                               cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size),
-                              on_anomaly=sync_reporter(self.health))
+                              on_anomaly=sync_reporter(self.health),
+                              max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
         self._lock = threading.Lock()
         self._latest: tuple[int, np.ndarray, np.ndarray] | None = None
         self._last_stamp: int | None = None

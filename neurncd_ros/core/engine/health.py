@@ -98,6 +98,19 @@ class Health:
         suffix = f" ({more} more of this kind since the last report)" if more else ""
         self._log(level, f"{message}{suffix}")
 
+    def note(self, kind: str, message: str) -> None:
+        """An event worth a log line that is not a problem (a decision the stage took, such
+        as the pose source chosen): logged at info, throttled per kind like a problem,
+        counted in :attr:`counts` as ``note.<kind>``; the diagnostics level stays OK."""
+        now = self._clock()
+        with self._lock:
+            self.counts[f"note.{kind}"] += 1
+            last = self._last_report.get(f"note.{kind}")
+            if last is not None and now - last < self.throttle_s:
+                return
+            self._last_report[f"note.{kind}"] = now
+        self._log(OK, message)
+
     def fail(self, kind: str, message: str) -> None:
         """An error that stops the stage's output: state ``error``, logged, reported."""
         with self._lock:
@@ -141,11 +154,18 @@ def sync_reporter(health, names: dict[str, str] | None = None):
     """An ``on_anomaly`` callback for :class:`..sync.StampSync` that reports to ``health``."""
     texts = {"duplicate": "a second message with stamp {s} on {n}: dropped",
              "out_of_order": "{n}: stamp {s} is older than a frame already paired: dropped",
-             "time_reset": "{n}: stamps went back (bag loop or clock reset): pairing restarts"}
+             "jump": "{n}: stamp {s} is {d} ahead of the last frame paired (more than "
+                     "sync_max_jump_s): dropped as a bad stamp; if stamps keep jumping "
+                     "(a new bag, a restarted camera), pairing restarts",
+             "expired": "{n}: the frame stamped {s} expired unpaired: nothing came on {d} "
+                        "within the sync tolerance: dropped",
+             "time_reset": "{n}: stamps went back or jumped ahead (bag loop, new bag or "
+                           "clock reset): pairing restarts"}
 
-    def report(stream: str, reason: str, stamp_ns: int) -> None:
+    def report(stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         name = (names or {}).get(stream, stream)
-        health.problem(f"{reason}", texts[reason].format(s=stamp_ns, n=name))
+        kind = "unpaired" if reason == "expired" else reason
+        health.problem(kind, texts[reason].format(s=stamp_ns, n=name, d=detail))
     return report
 
 

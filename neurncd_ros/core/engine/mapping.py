@@ -181,6 +181,12 @@ class MapperNodeConfig:
     sync_horizon_s: float = param(2.0, "how long a colour, depth or pose waits for its "
                                   "embedding (the embedding stage skips most frames)",
                                   lo=0.01, hi=600.0, unit="s")
+    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
+                                   "frame paired is dropped as a bad stamp (a driver "
+                                   "glitch), unless stamps keep jumping (10 messages in a "
+                                   "row: a new bag, a camera restarted after a pause), when "
+                                   "pairing restarts on the new timeline (0 = no limit)",
+                                   lo=0.0, hi=1e9, unit="s")
     queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
@@ -211,7 +217,8 @@ class MapperStage:
         self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
         self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
                               cfg.sync_horizon_s, capacity=max(4, cfg.queue_size), clock=clock,
-                              on_anomaly=sync_reporter(self.health))
+                              on_anomaly=sync_reporter(self.health),
+                              max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
         self.mapper = None
         self.spec: EmbeddingSpec | None = None
         self.intrinsics: Intrinsics | None = None

@@ -64,7 +64,8 @@ class PoseStage:
         self._tf_pending: list[int] = []
         self.sync = StampSync(("depth", "color"), int(node_cfg.sync_tolerance_ms * 1e6),
                               node_cfg.sync_horizon_s, capacity=max(4, node_cfg.queue_size),
-                              clock=clock, on_anomaly=sync_reporter(health))
+                              clock=clock, on_anomaly=sync_reporter(health),
+                              max_jump_ns=int(node_cfg.sync_max_jump_s * 1e9))
         self.odometry = None
         self.odometry_seconds = 0.0   # wall time spent tracking
         # colour+depth pairs (stamp, rgb, depth, intrinsics) waiting for their embedding,
@@ -114,7 +115,7 @@ class PoseStage:
             self._wanted.clear()
             self._early.clear()
         self.health.gauge("pose_source", mode)
-        self.health.problem("pose_source", f"pose source: {mode} (pose_source auto)", level=0)
+        self.health.note("pose_source", f"pose source: {mode} (pose_source auto)")
         return mode
 
     def _tf_links(self) -> bool:
