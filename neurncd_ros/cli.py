@@ -217,6 +217,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _run_layout() -> str:
+    """The output folder layout of ``neurncd run`` (for its --help)."""
+    from .core.engine.offline import OUTPUT_LAYOUT
+    return OUTPUT_LAYOUT
+
+
 def _progress(it, total: int, desc: str):
     from tqdm import tqdm
     return tqdm(it, total=total, desc=desc, unit="frame", leave=False)
@@ -288,7 +294,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train_backbone)
 
     p = sub.add_parser("run", help="run backbone, mapper and discovery on a bag without "
-                       "DDS; evaluates if the bag carries ground truth")
+                       "DDS; writes the label images, evaluates if the bag carries ground "
+                       "truth", formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Run the backbone, the mapper and discovery on a bag "
+                       "as the live graph does (no DDS).\nEvery labelled frame's label "
+                       "image is written; a bag with ground truth\n"
+                       "(/camera/semantic/image_raw) is also evaluated, a bag without is "
+                       "not\n(metrics.json says \"evaluated\": false).",
+                       epilog=_run_layout())
     p.add_argument("--bag", required=True)
     p.add_argument("--out", default=None, help="output folder (default run.out_dir)")
     _add_config_args(p)

@@ -227,10 +227,77 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+class DuplicateKeyError(yaml.YAMLError):
+    """A YAML mapping names the same key twice (the key path and both lines)."""
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that rejects a key given twice in one mapping.
+
+    PyYAML keeps the last value silently, so a parameter set twice in a file (an edit
+    that added a line instead of changing one) would take effect without a word. The
+    error names the key (as a dotted parameter name inside ``ros__parameters``) and the
+    lines of both values. Keys brought in by a ``<<`` merge may be overridden, as YAML
+    intends."""
+
+    _root = None
+
+    def construct_document(self, node):
+        self._root = node
+        return super().construct_document(node)
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, value_node in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark.line)
+                except TypeError:  # an unhashable key: the base class reports it
+                    continue
+                if first != key_node.start_mark.line:
+                    what = self._describe(node, key, value_node)
+                    raise DuplicateKeyError(f"{what} is given twice (lines {first + 1} and "
+                                            f"{key_node.start_mark.line + 1}); give it once")
+        return super().construct_mapping(node, deep)
+
+    def _describe(self, mapping, key, value) -> str:
+        """'parameter mapper.backend' (or 'section mapper') for a key under
+        ros__parameters, else 'key a.b'."""
+        def walk(node, path):
+            if node is mapping:
+                return path
+            if isinstance(node, yaml.MappingNode):
+                for k, v in node.value:
+                    found = walk(v, path + [str(getattr(k, "value", k))])
+                    if found is not None:
+                        return found
+            return None
+
+        path = (walk(self._root, []) or []) + [str(key)]
+        if len(path) > 2 and path[1] == "ros__parameters":
+            what = "section" if isinstance(value, yaml.MappingNode) else "parameter"
+            return f"{what} {'.'.join(path[2:])!r} (node {path[0]!r})"
+        return f"key {'.'.join(path)!r}"
+
+
+def strict_yaml_load(text: str) -> Any:
+    """``yaml.safe_load`` that raises :class:`DuplicateKeyError` for a key given twice in
+    one mapping instead of keeping the last value."""
+    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+
+
 def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
-    """The ``ros__parameters`` mapping of a ROS 2 parameter file (``/**`` or any node)."""
+    """The ``ros__parameters`` mapping of a ROS 2 parameter file (``/**`` or any node).
+
+    A key given twice in one mapping is a ConfigError naming it (YAML would keep the
+    last value silently)."""
     try:
-        doc = yaml.safe_load(text)
+        doc = strict_yaml_load(text)
+    except DuplicateKeyError as err:
+        raise ConfigError(f"{source}: {err}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{source}: not valid YAML: {err}") from None
     if doc is None:
@@ -261,6 +328,24 @@ def parse_overrides(pairs: list[str] | None, option: str = "--set") -> dict[str,
     return out
 
 
+def read_config_text(path: Path) -> str:
+    """A configuration file's text; a ConfigError naming the file if it is missing,
+    unreadable or not UTF-8 (the encoding YAML and ROS 2 parameter files use)."""
+    if not path.is_file():
+        raise ConfigError(f"config file {path} does not exist")
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        line = data[:err.start].count(b"\n") + 1
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{data[err.start]:02x} at line "
+                          f"{line}, byte offset {err.start}); save the file as UTF-8"
+                          ) from None
+
+
 def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
     """Read and validate a parameter file (default: the shipped config/neurncd.yaml).
 
@@ -269,9 +354,7 @@ def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None
     that makes it so (a bad ``--set`` value is not blamed on the file).
     """
     path = Path(path) if path else DEFAULT_CONFIG
-    if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist")
-    nested = parameters_from_yaml(path.read_text(), str(path))
+    nested = parameters_from_yaml(read_config_text(path), str(path))
     for key in overrides or {}:
         if "." not in key:
             raise ConfigError(f"{key}: override must be <section>.<name>")

@@ -222,6 +222,13 @@ def frame_messages(fr: Frame, topics: Topics = Topics(), depth_encoding: str = "
     if pose_mode not in ("topic", "tf", "both", "none"):
         raise BagError(f"pose_mode must be topic, tf, both or none, got {pose_mode!r}")
     fr.validate()
+    if fr.intrinsics.fx < 0 or fr.intrinsics.fy < 0:
+        # The contract's camera is OpenCV's (x right, y down): a negative focal length
+        # (ICL-NUIM's y-up camera) needs its pose converted too, not just the sign.
+        raise BagError(f"frame {fr.stamp_ns}: camera fx {fr.intrinsics.fx}, fy "
+                       f"{fr.intrinsics.fy}; the topic contract needs OpenCV axes (fx, fy > "
+                       "0): convert camera and pose with core.data.formats.opencv_axes (the "
+                       "dataset readers do)")
     if fr.pose is None and pose_mode != "none":
         raise BagError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
                        "`neurncd convert --poses odometry`)")

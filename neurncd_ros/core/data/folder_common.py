@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -42,7 +43,9 @@ PRESETS: dict[str, Preset] = {
     "tum": Preset("scale", 5000.0, (517.3, 516.5, 318.6, 255.3)),   # TUM fr1
     "nyu": Preset("nyu_disparity", 1.0, (518.86, 519.47, 325.58, 253.74)),
     "kinect": Preset("scale", 1000.0, (518.0, 519.0, 325.5, 253.5)),  # slambook NYU seq
-    "icl": Preset("scale", 5000.0, (481.2, -480.0, 319.5, 239.5)),  # y-up: negative fy
+    # ICL-NUIM documents fy = -480 (its camera and world frames are y-up, left-handed):
+    # the readers turn it into an OpenCV camera (:func:`opencv_axes`).
+    "icl": Preset("scale", 5000.0, (481.2, -480.0, 319.5, 239.5)),
     "redwood": Preset("scale", 1000.0, (525.0, 525.0, 319.5, 239.5)),
     "sun": Preset("sun_rotated", 1000.0, (525.0, 525.0, 319.5, 239.5)),
 }
@@ -161,6 +164,91 @@ def read_depth(path: Path, depth_format: str, depth_scale: float,
     return decode_depth(read_raw16(path), depth_format, depth_scale, max_depth_m)
 
 
+# Median depth of an indoor RGB-D frame, metres: outside this a depth scale is suspect.
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.3, 8.0)
+# Depth units per metre of the common datasets, and who uses them.
+COMMON_DEPTH_SCALES = {1000.0: "millimetres: Kinect/NYU, Redwood, Replica",
+                       5000.0: "1/5000 m: TUM RGB-D, ICL-NUIM"}
+
+
+class DepthScaleCheck:
+    """Refuses a folder whose depth, decoded with the folder kind's default scale, is
+    not an indoor scene while another common scale makes it one.
+
+    A folder in a shared layout does not say its depth unit: slambook's ``color/``,
+    ``depth/``, ``pose.txt`` layout holds NYU's millimetres (the default) as well as
+    ICL-NUIM's 1/5000 m, which read as millimetres gives a 15 m living room and
+    wrong geometry throughout. The check runs on the first frame with depth; it is
+    skipped when the user chose the decoding (``preset``, ``depth_scale`` or
+    ``depth_format``), so a choice is never second-guessed."""
+
+    def __init__(self, cfg: "FolderConfig", kind: str, folder: Path) -> None:
+        preset = PRESETS[DEFAULT_PRESET[kind]]
+        self.scale = preset.depth_scale
+        self.preset_name = DEFAULT_PRESET[kind]
+        self.kind, self.folder = kind, folder
+        self.active = (not cfg.preset and not cfg.depth_scale and
+                       cfg.depth_format in ("", "scale") and preset.depth_format == "scale")
+
+    def __call__(self, depth: np.ndarray, where: Path) -> None:
+        """Check one decoded depth image (metres) until a frame with depth is seen."""
+        if not self.active:
+            return
+        valid = depth[np.isfinite(depth) & (depth > 0)]
+        if valid.size < 0.05 * depth.size:
+            return  # too little depth to judge: try the next frame
+        self.active = False
+        med = float(np.median(valid))
+        lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+        if lo <= med <= hi:
+            return
+        for scale, who in COMMON_DEPTH_SCALES.items():
+            alt = med * self.scale / scale
+            if scale == self.scale or not lo <= alt <= hi:
+                continue
+            if scale == 5000.0 and self.kind == "posetxt":
+                fix = ("an ICL-NUIM folder needs preset icl (neurncd convert --opt "
+                       "preset=icl), which also sets its camera; other data: depth_scale "
+                       "5000 and its intrinsics")
+            else:
+                fix = (f"set depth_scale {scale:g} (neurncd convert --opt depth_scale="
+                       f"{scale:g}) or the dataset's preset")
+            raise FormatError(
+                f"{self.folder}: the depth of {where.name} read with the default scale of a "
+                f"{self.kind} folder ({self.scale:g} units per metre, preset "
+                f"{self.preset_name}) has a median of {med:.1f} m, not an indoor scene "
+                f"({lo:g}-{hi:g} m); at {scale:g} units per metre ({who}) it is {alt:.1f} m. "
+                f"Say which: {fix}. Setting preset or depth_scale skips this check")
+        warnings.warn(f"{self.folder}: the depth of {where.name} has a median of {med:.1f} m "
+                      f"at {self.scale:g} units per metre (preset {self.preset_name}), "
+                      f"outside {lo:g}-{hi:g} m; check depth_scale", stacklevel=2)
+
+
+def opencv_axes(intr: Intrinsics, pose: np.ndarray | None
+                ) -> tuple[Intrinsics, np.ndarray | None]:
+    """A camera with negative focal lengths as the OpenCV camera the topic contract asks
+    for (x right, y down, z forward: fx, fy > 0), the same 3D points in the same places.
+
+    ICL-NUIM documents fy = -480: its camera frame has y up (x right, z forward), a
+    left-handed frame, and its poses map it to a left-handed, y-up world (POV-Ray's).
+    Backprojecting pixel v gives Y = (v - cy) z / fy; with S = diag(1, -1, 1) the
+    point S p is what fy > 0 gives, in the right-handed frame S C. A rotation between
+    two left-handed frames becomes one between right-handed frames by conjugation,
+    so the pose becomes S T S (the world mirrored the same way: its y axis points
+    down). Images are unchanged (nothing is flipped), reprojection between frames is
+    exactly as before, and every rotation stays a rotation (det +1). A negative fx is
+    handled alike; both negative is a 180 degree roll, T S, the world unchanged."""
+    sx, sy = (-1.0 if intr.fx < 0 else 1.0), (-1.0 if intr.fy < 0 else 1.0)
+    if sx > 0 and sy > 0:
+        return intr, pose
+    fixed = Intrinsics(abs(intr.fx), abs(intr.fy), intr.cx, intr.cy, intr.width, intr.height)
+    if pose is None:
+        return fixed, None
+    S = np.diag([sx, sy, 1.0, 1.0])
+    T = np.asarray(pose, dtype=np.float64)
+    return fixed, (S @ T @ S if sx * sy < 0 else T @ S)
+
+
 def _camera(intr: tuple | None, h: int, w: int, where: Path) -> Intrinsics:
     if intr is None:
         raise FormatError(f"{where}: no intrinsics known; pass intrinsics=[fx, fy, cx, cy]")
@@ -173,6 +261,7 @@ def _make_frame(stamp_ns: int, rgb: np.ndarray, depth: np.ndarray, pose: np.ndar
     if rgb.shape[:2] != depth.shape:
         raise FormatError(f"{where}: colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                           f"{depth.shape[1]}x{depth.shape[0]}")
+    intr, pose = opencv_axes(intr, pose)
     try:
         return Frame(int(stamp_ns), rgb, depth, pose, intr, semantic, instance).validate()
     except ValueError as err:

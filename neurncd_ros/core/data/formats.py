@@ -23,7 +23,13 @@ Folder layouts understood by :func:`read_folder`:
 Replica ``semantic_class/`` ids become NYU-13 through :mod:`.replica_classes`.
 
 Depth decoding, scales and intrinsics are parameters (:class:`FolderConfig`);
-``preset`` fills in the documented defaults of a dataset.
+``preset`` fills in the documented defaults of a dataset. A folder read with its
+kind's default scale whose first depth image is no indoor scene at that scale but
+is one at another common scale (ICL-NUIM's 1/5000 m in the slambook layout reads
+as a 15 m room in millimetres) is refused with the option to set
+(:class:`DepthScaleCheck`). Frames always carry an OpenCV camera (fx, fy > 0): a
+dataset's negative focal length (ICL-NUIM's fy = -480, a y-up camera) becomes a
+positive one with the pose converted to match (:func:`opencv_axes`).
 
 The readers live in one module per family (:mod:`.folder_common`, :mod:`.replica`,
 :mod:`.tum`; posetxt, redwood, NYU and the dispatch here); every name stays
@@ -49,7 +55,8 @@ from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS,  # 
                             decode_depth, read_depth, _camera, _make_frame,  # noqa: F401
                             _subsample, _load_rows, _pose, read_tq_poses,  # noqa: F401
                             read_tum_trajectory, read_matrix_rows, read_redwood_log,  # noqa: F401
-                            read_redwood_intrinsics, _NUM_RE, _indexed)  # noqa: F401
+                            read_redwood_intrinsics, _NUM_RE, _indexed,  # noqa: F401
+                            DepthScaleCheck, opencv_axes)  # noqa: F401
 from .replica import (_as_lookup, NYU13_MARKER, _replica_lookup, read_replica,  # noqa: F401
                       read_labels, _replica_stamps, _read_intrinsics_json,  # noqa: F401
                       _write_png, write_replica)  # noqa: F401
@@ -82,9 +89,11 @@ def read_posetxt(folder: str | Path, cfg: FolderConfig = FolderConfig()) -> Iter
     if n == 0 or len(depths) != n or len(poses) < n:
         raise FormatError(f"{folder}: {n} colour, {len(depths)} depth images and "
                           f"{len(poses)} poses; need equal non-zero counts")
+    check = DepthScaleCheck(cfg, "posetxt", folder)
     for i in _subsample(list(range(n)), cfg):
         rgb = read_rgb(colors[i])
         depth = read_depth(depths[i], fmt, scale, cfg.max_depth_m)
+        check(depth, depths[i])
         intr = _camera(intr_vals, *depth.shape, folder)
         yield _make_frame(_stamp(i, cfg), rgb, depth, poses[i], intr, str(colors[i]))
 
@@ -110,12 +119,14 @@ def read_redwood(folder: str | Path, cfg: FolderConfig = FolderConfig()) -> Iter
     if not pairs:
         raise FormatError(f"{folder}: no colour/depth pairs")
     traj = read_redwood_log(folder / "trajectory.log")
+    check = DepthScaleCheck(cfg, "redwood", folder)
     for i in _subsample(list(range(len(pairs))), cfg):
         if i not in traj:
             raise FormatError(f"{folder}/trajectory.log has no pose for frame {i}")
         cp, dp = pairs[i]
         rgb = read_rgb(cp)
         depth = read_depth(dp, fmt, scale, cfg.max_depth_m)
+        check(depth, dp)
         if cam is None:
             intr = _camera(intr_vals, *depth.shape, folder)
         else:

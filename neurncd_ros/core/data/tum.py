@@ -14,7 +14,8 @@ from ..frame import Frame
 from ..sync import nearest, pose_at
 
 from .folder_common import (IMAGE_EXTS, FormatError, FolderConfig, _resolve, read_rgb,
-                            read_depth, _camera, _make_frame, _subsample, read_tum_trajectory)
+                            read_depth, _camera, _make_frame, _subsample, read_tum_trajectory,
+                            DepthScaleCheck)
 from .replica import _write_png
 
 
@@ -114,9 +115,11 @@ def read_tum(folder: str | Path, cfg: FolderConfig = FolderConfig(),
         raise FormatError(f"{folder}: no colour frame has depth" +
                           (" and pose" if with_poses else "") +
                           f" within {cfg.max_time_diff_s} s")
+    check = DepthScaleCheck(cfg, kind, folder)
     for t, rp, dp, pose in _subsample(pairs, cfg):
         rgb = read_rgb(rp)
         depth = read_depth(dp, fmt, scale, cfg.max_depth_m)
+        check(depth, dp)
         intr = _camera(intr_vals, *depth.shape, folder)
         yield _make_frame(t, rgb, depth, pose, intr, str(rp))
 

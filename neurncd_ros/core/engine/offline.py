@@ -58,7 +58,8 @@ class RunConfig:
     max_frames: int = param(0, "stop after this many input frames (0 = all)", lo=0,
                             hi=10_000_000)
     overlays: int = param(6, "how many labelled frames get a PNG overlay", lo=0, hi=10_000)
-    out_dir: str = param("out/run", "where overlays and metrics.json are written")
+    out_dir: str = param("out/run", "where metrics.json, labels/ and overlays/ are "
+                         "written")
 
 
 @dataclasses.dataclass
@@ -171,8 +172,30 @@ class OfflineEngine:
 
 # ---------------------------------------------------------------- neurncd run
 
+OUTPUT_LAYOUT = """\
+The output folder (--out, default run.out_dir) holds:
+  metrics.json        every figure of the run: frames, labelled frames, timings, the
+                      class table, "evaluated" (true when the bag has ground truth and the
+                      frames were scored, then "metrics" and "metrics_backbone_only")
+  labels/<stamp>.png  the label image of every labelled frame, 16-bit PNG, exactly the
+                      image the discovery node publishes on /neurncd/labels: 0
+                      unlabelled, 1..13 NYU-13 (known classes), 100 and up novel classes
+  overlays/<stamp>.png  the first run.overlays labelled frames side by side: rgb | ground
+                      truth (only where the frame has it) | backbone | NeurNCD labels |
+                      entropy
+<stamp> is the frame's stamp in nanoseconds. A run replaces the label images and overlays
+an earlier run left in the same folder."""
+
+
+def overlay_tiles(with_ground_truth: bool) -> str:
+    """The tiles of an overlay, left to right, as the summary names them."""
+    return " | ".join(["rgb"] + (["ground truth"] if with_ground_truth else []) +
+                      ["backbone", "NeurNCD labels", "entropy"])
+
+
 def overlay(out: Output) -> np.ndarray:
-    """One picture per labelled frame: rgb | ground truth | backbone | labels | entropy."""
+    """One picture per labelled frame: rgb | ground truth | backbone | labels | entropy; the
+    ground-truth tile only where the frame has ground truth (:func:`overlay_tiles`)."""
     f = out.frame
     h, w = f.depth.shape
     tiles = [f.rgb]
@@ -186,24 +209,86 @@ def overlay(out: Output) -> np.ndarray:
     return np.concatenate(tiles, axis=1)
 
 
+def write_labels_png(path: Path, labels: np.ndarray) -> None:
+    """A published label image (H, W) uint16 as a 16-bit PNG, ids unchanged: what a user
+    reads back with ``cv2.imread(path, cv2.IMREAD_UNCHANGED)`` is the /neurncd/labels
+    image."""
+    if labels.ndim != 2 or labels.dtype != np.uint16:
+        raise ValueError(f"labels must be (H, W) uint16, got {labels.shape} {labels.dtype}")
+    if not cv2.imwrite(str(path), labels):
+        raise ValueError(f"{path}: cannot write the label image")
+
+
+def _clear_stale(folder: Path) -> None:
+    """Remove the ``<stamp>.png`` files an earlier run left in one of the output's own
+    subfolders, so the folder shows this run's frames only (nothing else is touched)."""
+    for p in folder.glob("*.png"):
+        if p.stem.isdigit():
+            p.unlink()
+
+
+class _ClassTally:
+    """Which ids the published label images show, in how many pixels and frames.
+
+    The discoverer's own class table lists every novel id it still holds, with the
+    pixels of the last labelled frame only, so a novel id that was merged into another
+    or is not in the last frame reads as a class with 0 pixels. The run's class table
+    is made from what was published instead."""
+
+    def __init__(self) -> None:
+        self.pixels: dict[int, int] = {}
+        self.frames: dict[int, int] = {}
+
+    def add(self, labels: np.ndarray) -> None:
+        ids, counts = np.unique(labels, return_counts=True)
+        for i, c in zip(ids.tolist(), counts.tolist()):
+            if i:
+                self.pixels[i] = self.pixels.get(i, 0) + int(c)
+                self.frames[i] = self.frames.get(i, 0) + 1
+
+    def table(self, discoverer) -> tuple[dict[str, dict], list[int]]:
+        """(the classes the labels show, by id: name, kind, pixels and frames over all
+        labelled frames, and for a novel id later published under another id the id it
+        was merged into; the ids the discoverer holds that no label image shows)."""
+        held = discoverer.classes() if discoverer is not None else {}
+        fusion = getattr(discoverer, "fusion", None)
+        aliases = fusion.aliases if fusion is not None else {}
+        shown: dict[str, dict] = {}
+        for i in sorted(self.pixels):
+            row = {"name": classes.class_name(i),
+                   "kind": "novel" if i >= classes.NOVEL_ID_START else "known",
+                   "pixels": self.pixels[i], "frames": self.frames[i]}
+            if i in aliases:
+                row["merged_into"] = int(aliases[i])
+            shown[str(i)] = row
+        unshown = sorted(int(i) for i in held if int(i) not in self.pixels)
+        return shown, unshown
+
+
 def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | None = None,
                progress: bool = True, source: Callable[[], dict] | None = None
                ) -> dict[str, Any]:
-    """Run the engine on frames; write metrics.json and overlays; return the result.
+    """Run the engine on frames; write metrics.json, the label images and the overlays
+    (layout: :data:`OUTPUT_LAYOUT`); return the result.
 
     ``source()``, called once the frames are used up, adds what the frame source
     knows about itself (the bag, its drops, where the poses came from)."""
     from ..discovery.metrics import Evaluator
 
     out = Path(out_dir)
-    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    for sub in ("labels", "overlays"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+        _clear_stale(out / sub)
     t_start = time.perf_counter()
     engine = OfflineEngine(cfg)
     ev, ev_backbone = Evaluator(), Evaluator()
-    n_labelled = n_keyframes = n_evaluated = n_overlays = 0
+    tally = _ClassTally()
+    n_labelled = n_keyframes = n_evaluated = n_overlays = n_overlays_gt = 0
     for o in engine.run(frames, total, progress):
         n_labelled += 1
         n_keyframes += o.view.keyframe
+        write_labels_png(out / "labels" / f"{o.frame.stamp_ns}.png", o.labels.labels)
+        tally.add(o.labels.labels)
         if o.frame.semantic is not None:
             ev.update(o.labels.labels, o.frame.semantic)
             ev_backbone.update(o.backbone_ids(), o.frame.semantic)
@@ -212,9 +297,11 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
             cv2.imwrite(str(out / "overlays" / f"{o.frame.stamp_ns}.png"),
                         overlay(o)[:, :, ::-1])
             n_overlays += 1
+            n_overlays_gt += o.frame.semantic is not None
     if engine.frames_in == 0:
         raise ValueError("no frames to run on")
     mapper = engine.mapper
+    shown, unshown = tally.table(engine.discovery.discoverer)
     result: dict[str, Any] = {
         "frames": engine.frames_in, "labelled": n_labelled, "keyframes_labelled": n_keyframes,
         "keyframes": len(engine.mapping.keyframe_stamps),
@@ -223,8 +310,13 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         "backbone_checkpoint": cfg.backbone.checkpoint or "shipped default",
         "seconds": round(time.perf_counter() - t_start, 2),
         **{f"seconds_{k}": round(v, 2) for k, v in engine.seconds.items()},
-        "classes": {str(k): v for k, v in (engine.discovery.discoverer.classes().items()
-                                          if engine.discovery.discoverer else [])},
+        "evaluated": n_evaluated > 0,
+        "frames_evaluated": n_evaluated,
+        "classes": shown,
+        "class_ids_not_in_labels": unshown,
+        "label_images": n_labelled,
+        "overlays": n_overlays,
+        "overlays_with_ground_truth": n_overlays_gt,
         "out_dir": str(out),
     }
     if n_evaluated:
@@ -285,7 +377,8 @@ def run_bag(bag: str | Path, cfg, out_dir: str | Path) -> dict[str, Any]:
 
 
 def summary(result: dict[str, Any]) -> str:
-    """A few lines a person reads after a run."""
+    """A few lines a person reads after a run: what ran, the scores or that nothing was
+    scored, the classes the labels show, and what was written where."""
     lines = [f"ran {result['frames']} frames ({result['labelled']} labelled, "
              f"{result['keyframes_labelled']} of {result['keyframes']} keyframes) in "
              f"{result['seconds']} s: backbone {result['seconds_backbone']} s, field "
@@ -295,14 +388,40 @@ def summary(result: dict[str, Any]) -> str:
     m = result.get("metrics")
     if m:
         b = result["metrics_backbone_only"]
+        n_eval = result.get("frames_evaluated", result["labelled"])
+        if n_eval < result["labelled"]:
+            lines.append(f"evaluated on the {n_eval} of {result['labelled']} labelled "
+                         "frames that have ground truth")
         lines.append(f"NeurNCD: mIoU all {m['miou_all']:.1f}, known {m['miou_known']:.1f}, "
                      f"novel {m['miou_novel']:.1f}; Total Acc {m['total_acc']:.1f}, Avg Acc "
                      f"{m['avg_acc']:.1f}; SCIM assigned mIoU {m['assigned_miou']:.1f} (%)")
         lines.append(f"backbone alone (known classes only): mIoU known "
                      f"{b['miou_known']:.1f}, Total Acc {b['total_acc']:.1f} (%)")
-    novel = [k for k, v in result.get("classes", {}).items() if v.get("kind") == "novel"]
-    lines.append(f"classes: {len(result.get('classes', {}))} ({len(novel)} novel: "
-                 f"{', '.join(novel[:8])}{'...' if len(novel) > 8 else ''})")
-    lines.append(f"wrote {result['out_dir']}/metrics.json and overlays/*.png "
-                 "(rgb | ground truth | backbone | NeurNCD labels | entropy)")
+    elif result["labelled"]:
+        lines.append("no ground truth in the bag: labels written, nothing evaluated")
+    shown = result.get("classes", {})
+    merged = [k for k, v in shown.items() if "merged_into" in v]
+    novel = [k for k, v in shown.items() if v.get("kind") == "novel" and k not in merged]
+    n_known = sum(v.get("kind") == "known" for v in shown.values())
+    line = (f"classes in the labels: {n_known + len(novel)} ({n_known} known, {len(novel)} "
+            "novel" + (f": {', '.join(novel[:8])}{'...' if len(novel) > 8 else ''}"
+                       if novel else "") + ")")
+    extra = []
+    if merged:
+        extra.append(f"{len(merged)} novel id(s) in earlier labels later merged into "
+                     "another (metrics.json: merged_into)")
+    hidden = result.get("class_ids_not_in_labels", [])
+    if hidden:
+        extra.append(f"{len(hidden)} novel id(s) held by discovery but in no label image")
+    lines.append(line + ("; " + "; ".join(extra) if extra else ""))
+    out = result["out_dir"]
+    n_ov, n_gt = result.get("overlays", 0), result.get("overlays_with_ground_truth", 0)
+    wrote = (f"wrote {out}/metrics.json, {out}/labels/<stamp>.png ({result['labelled']} "
+             "label images, 16-bit: 1-13 NYU-13, 100+ novel, 0 unlabelled)")
+    if n_ov:
+        tiles = overlay_tiles(n_gt == n_ov) if n_gt in (0, n_ov) else \
+            overlay_tiles(True).replace("ground truth", "ground truth (where the frame has "
+                                        "it)")
+        wrote += f" and {out}/overlays/<stamp>.png ({n_ov}: {tiles})"
+    lines.append(wrote)
     return "\n".join(lines)

@@ -1,0 +1,246 @@
+"""What a user of the offline tool sees on real inputs: `neurncd run` on a bag without
+ground truth, `neurncd convert` on an ICL-NUIM folder, and configuration files that
+are wrong in ways YAML itself accepts."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import re
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from neurncd_ros import config
+from neurncd_ros.core import classes
+from neurncd_ros.core.camera import Intrinsics, reproject_depth_error
+from neurncd_ros.core.data import formats
+from neurncd_ros.core.data.bag import FrameReader
+from neurncd_ros.core.data.formats import FormatError, opencv_axes, read_folder
+from neurncd_ros.core.params import ConfigError
+
+from rosutil import REPO
+
+
+def neurncd(*args: object, timeout: float = 600) -> subprocess.CompletedProcess:
+    """Run the offline tool (``python -m neurncd_ros.cli ARGS``) from the repository root."""
+    return subprocess.run([sys.executable, "-m", "neurncd_ros.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+# ------------------------------------------------------------ run without ground truth
+
+@pytest.fixture(scope="module")
+def kinect_run(real_data_dir, tmp_path_factory):
+    """The real Kinect dining room (no semantic ground truth) as a bag, run once."""
+    tmp = tmp_path_factory.mktemp("kinect")
+    bag = tmp / "kinect_dining.mcap"
+    assert formats.convert(real_data_dir / "kinect_dining", bag) == 5
+    out = tmp / "out"
+    (out / "labels").mkdir(parents=True)
+    # A label image an earlier run left behind: not one of this run's frames.
+    cv2.imwrite(str(out / "labels" / "42.png"), np.ones((4, 4), np.uint16))
+    r = neurncd("run", "--bag", bag, "--out", out, "--set", "run.overlays=1")
+    assert r.returncode == 0, r.stdout + r.stderr
+    return r, out, json.loads((out / "metrics.json").read_text())
+
+
+def test_run_without_ground_truth_says_so_and_flags_it(kinect_run):
+    r, out, result = kinect_run
+    assert "no ground truth in the bag: labels written, nothing evaluated" in r.stdout
+    assert result["evaluated"] is False and result["frames_evaluated"] == 0
+    assert "metrics" not in result
+    # The overlays have no ground-truth tile, and the summary says which tiles they have.
+    (ov,) = (out / "overlays").glob("*.png")
+    assert cv2.imread(str(ov)).shape == (480, 4 * 640, 3)
+    assert "(1: rgb | backbone | NeurNCD labels | entropy)" in r.stdout
+    assert "ground truth |" not in r.stdout
+
+
+def test_run_writes_every_published_label_image_as_16_bit_png(kinect_run):
+    r, out, result = kinect_run
+    pngs = sorted((out / "labels").glob("*.png"))
+    assert len(pngs) == result["labelled"] == result["label_images"] >= 1
+    assert "42.png" not in {p.name for p in pngs}  # the earlier run's file is gone
+    pixels: dict[int, int] = {}
+    for p in pngs:
+        lab = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        assert lab.dtype == np.uint16 and lab.shape == (480, 640)
+        ids, counts = np.unique(lab, return_counts=True)
+        # The ids of /neurncd/labels: 0 unlabelled, NYU-13, novel from 100.
+        assert all(i == 0 or 1 <= i <= classes.NUM_CLASSES or i >= classes.NOVEL_ID_START
+                   for i in ids.tolist())
+        for i, c in zip(ids.tolist(), counts.tolist()):
+            if i:
+                pixels[i] = pixels.get(i, 0) + c
+    # The class table is exactly what the label images show: no class without pixels.
+    assert {int(k): v["pixels"] for k, v in result["classes"].items()} == pixels
+    assert all(v["pixels"] > 0 and v["frames"] >= 1 for v in result["classes"].values())
+    assert not set(result["class_ids_not_in_labels"]) & set(pixels)
+    assert f"{out}/labels/<stamp>.png ({len(pngs)} label images, 16-bit" in r.stdout
+    shown = [k for k, v in result["classes"].items() if "merged_into" not in v]
+    assert f"classes in the labels: {len(shown)} (" in r.stdout
+
+
+def test_run_with_ground_truth_is_flagged_evaluated(tmp_path):
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    bag = tmp_path / "scene.mcap"
+    write_bag(bag, synth.generate(1002, 12, synth.SynthConfig(width=160, height=120)))
+    out = tmp_path / "out"
+    r = neurncd("run", "--bag", bag, "--out", out, "--set", "run.overlays=1")
+    assert r.returncode == 0, r.stdout + r.stderr
+    result = json.loads((out / "metrics.json").read_text())
+    assert result["evaluated"] is True and result["frames_evaluated"] == result["labelled"]
+    assert "nothing evaluated" not in r.stdout and "NeurNCD: mIoU all" in r.stdout
+    (ov,) = (out / "overlays").glob("*.png")
+    assert cv2.imread(str(ov)).shape == (120, 5 * 160, 3)
+    assert "(1: rgb | ground truth | backbone | NeurNCD labels | entropy)" in r.stdout
+    assert len(list((out / "labels").glob("*.png"))) == result["labelled"]
+
+
+def test_run_help_states_the_output_layout():
+    r = neurncd("run", "--help", timeout=120)
+    assert r.returncode == 0
+    for text in ("metrics.json", "labels/<stamp>.png", "16-bit", "/neurncd/labels",
+                 "overlays/<stamp>.png", '"evaluated"'):
+        assert text in r.stdout, text
+
+
+# ------------------------------------------------------------ ICL-NUIM
+
+def test_icl_folder_read_as_millimetres_is_refused_naming_the_preset(real_data_dir,
+                                                                      tmp_path):
+    icl = real_data_dir / "icl_livingroom"
+    with pytest.raises(FormatError, match=r"median of 15\.\d m.*preset=icl"):
+        next(read_folder(icl))
+    out = tmp_path / "icl.mcap"
+    r = neurncd("convert", icl, "--out", out, timeout=120)
+    assert r.returncode == 1 and "--opt preset=icl" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
+    # A scale the user chose is not second-guessed (the geometry then shows it is wrong).
+    f = next(read_folder(icl, depth_scale=1000.0))
+    assert np.median(f.depth[f.depth > 0]) > 14.0
+    # The millimetre folders of the same layout read as before.
+    f = next(read_folder(real_data_dir / "kinect_dining"))
+    assert 2.5 < np.median(f.depth[f.depth > 0]) < 3.3
+
+
+def test_icl_preset_gives_an_opencv_camera_and_poses_that_agree(real_data_dir, tmp_path):
+    icl = real_data_dir / "icl_livingroom"
+    frames = list(read_folder(icl, preset="icl"))
+    for f in frames:
+        assert (f.intrinsics.fx, f.intrinsics.fy) == (481.2, 480.0)
+        assert abs(np.linalg.det(f.pose[:3, :3]) - 1.0) < 1e-6
+        # Upright images: the image's down direction is the same world direction in all
+        # frames (ICL-NUIM's y-up world mirrored to y-down).
+        assert f.pose[1, 1] > 0.9
+    # Back-projected points land on the next frame's depth (the dataset README: ~4 cm)
+    # for the overlapping pairs; the fy sign flipped without the poses would not.
+    for a, b in ((frames[0], frames[1]), (frames[3], frames[4])):
+        err = reproject_depth_error(a.depth, a.pose, b.depth, b.pose, a.intrinsics)
+        assert err.size > 50_000 and np.median(err) < 0.06
+    raw = list(itertools.islice(read_folder(icl, depth_scale=5000.0,
+                                            intrinsics=[481.2, 480.0, 319.5, 239.5]), 2))
+    naive = reproject_depth_error(raw[0].depth, raw[0].pose, raw[1].depth, raw[1].pose,
+                                  raw[0].intrinsics)
+    assert np.median(naive) > 0.2
+    # The bag's CameraInfo carries the OpenCV camera too.
+    out = tmp_path / "icl.mcap"
+    r = neurncd("convert", icl, "--out", out, "--opt", "preset=icl", timeout=120)
+    assert r.returncode == 0, r.stderr
+    back = list(FrameReader(out))
+    assert [f.intrinsics.fy for f in back] == [480.0] * 5
+    err = reproject_depth_error(back[0].depth, back[0].pose, back[1].depth, back[1].pose,
+                                back[0].intrinsics)
+    assert np.median(err) < 0.06
+
+
+def test_negative_focal_lengths_become_an_opencv_camera():
+    """Points back-projected with the dataset's camera and pose are the points of the
+    converted camera and pose, in a frame mirrored the same way (or rolled, when both
+    focal lengths are negative)."""
+    rng = np.random.default_rng(0)
+    u, v, z = rng.uniform(0, 640, 50), rng.uniform(0, 480, 50), rng.uniform(0.5, 4, 50)
+    a = np.radians(30)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = [0.3, -0.2, 1.0]
+
+    def world(intr: Intrinsics, pose: np.ndarray) -> np.ndarray:
+        p = np.stack([(u - intr.cx) * z / intr.fx, (v - intr.cy) * z / intr.fy, z,
+                      np.ones_like(z)])
+        return (pose @ p)[:3]
+
+    for fx, fy, mirror in ((481.2, -480.0, [1, -1, 1]), (-481.2, 480.0, [-1, 1, 1]),
+                           (-481.2, -480.0, [1, 1, 1])):
+        intr = Intrinsics(fx, fy, 319.5, 239.5, 640, 480)
+        fixed, pose = opencv_axes(intr, T)
+        assert fixed.fx > 0 and fixed.fy > 0
+        assert abs(np.linalg.det(pose[:3, :3]) - 1.0) < 1e-9
+        np.testing.assert_allclose(world(fixed, pose),
+                                   np.array(mirror)[:, None] * world(intr, T), atol=1e-9)
+    plain = Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480)
+    assert opencv_axes(plain, T)[1] is T
+
+
+def test_a_bag_never_gets_a_negative_focal_length(real_data_dir, tmp_path):
+    import dataclasses
+
+    from neurncd_ros.core.data.bag import BagError, write_bag
+
+    f = next(read_folder(real_data_dir / "icl_livingroom", preset="icl"))
+    i = f.intrinsics
+    flipped = dataclasses.replace(f, intrinsics=Intrinsics(i.fx, -i.fy, i.cx, i.cy, i.width,
+                                                           i.height))
+    with pytest.raises(BagError, match=r"fy -480\.0; the topic contract needs OpenCV axes"):
+        write_bag(tmp_path / "bad.mcap", [flipped])
+    assert not (tmp_path / "bad.mcap").exists()
+
+
+# ------------------------------------------------------------ configuration files
+
+PARAMS = "/**:\n  ros__parameters:\n"
+
+
+def test_a_key_given_twice_is_a_configuration_error_naming_file_and_key(tmp_path):
+    dup = tmp_path / "my.yaml"
+    dup.write_text(PARAMS + "    run:\n      overlays: 2\n      out_dir: a\n"
+                   "      overlays: 3\n")
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(dup))}: parameter "
+                                          r"'run\.overlays' .* given twice \(lines 4 and 6\)"):
+        config.load(dup)
+    dup.write_text(PARAMS + "    run:\n      overlays: 2\n    mapper:\n      backend: fast\n"
+                   "    run:\n      out_dir: a\n")
+    with pytest.raises(ConfigError, match=r"section 'run' .* twice \(lines 3 and 7\)"):
+        config.load(dup)
+    r = neurncd("params", "--config", dup, timeout=120)
+    assert r.returncode == 2 and f"configuration error: {dup}: section 'run'" in r.stderr
+    r = neurncd("check-config", dup, timeout=120)
+    assert r.returncode == 2 and str(dup) in r.stderr and "twice" in r.stderr
+    # Not duplicates: the same parameter for two nodes (the node's wins, as in ROS 2),
+    # and a key overriding one brought in by a YAML merge.
+    ok = tmp_path / "ok.yaml"
+    ok.write_text(PARAMS + "    run: {overlays: 2}\nneurncd_mapper:\n  ros__parameters:\n"
+                  "    run: {overlays: 3}\n")
+    assert config.load(ok).run.overlays == 3
+    assert config.strict_yaml_load("a: &x {k: 1}\nb: {<<: *x, k: 2}\n")["b"] == {"k": 2}
+
+
+def test_a_config_that_is_not_utf8_is_named(tmp_path):
+    bad = tmp_path / "latin1.yaml"
+    bad.write_bytes(b"\xff\xfe" + (PARAMS + "    run: {out_dir: caf\xe9}\n").encode("utf-16-le"))
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(bad))}: not UTF-8 text "
+                                          r"\(byte 0xff at line 1"):
+        config.load(bad)
+    r = neurncd("params", "--config", bad, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert f"neurncd params: configuration error: {bad}: not UTF-8" in r.stderr
+    bad.write_bytes((PARAMS + "    run: {out_dir: caf\xe9}\n").encode("latin-1"))
+    with pytest.raises(ConfigError, match=rf"^{re.escape(str(bad))}: not UTF-8 text "
+                                          r"\(byte 0xe9 at line 3"):
+        config.load(bad)
