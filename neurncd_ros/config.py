@@ -54,6 +54,11 @@ class ReplayConfig:
                                           "holds (colour, depth, camera info, pose) has a "
                                           "subscriber; then play anyway, with a warning (0 = "
                                           "do not wait)", lo=0.0, hi=3600.0, unit="s")
+    settle_s: float = param(1.0, "then wait until the number of subscribers on those topics "
+                            "has not changed for this long (within wait_for_subscribers_s): "
+                            "a second node still matching, or one whose side of the match "
+                            "is not complete yet, would miss the first frames", lo=0.0,
+                            hi=60.0, unit="s")
 
 
 # Top-level section name -> (module, class). Core sections are imported lazily so

@@ -114,6 +114,44 @@ def test_embedding_node_answers_frame_with_same_stamp_and_size(ros_node, tmp_pat
     assert code == 0 and "pairs " in text, "the node must shut down cleanly on Ctrl-C"
 
 
+def test_replay_waits_until_every_subscriber_has_matched(ros_node, small_bag, tmp_path):
+    """A subscriber that joins just after the replay saw the first one still gets the
+    bag's first frame: the replay plays only once the number of subscribers has held
+    still for replay.settle_s (one of five bringup runs lost the first frame when it
+    played as soon as one subscriber was there)."""
+    from sensor_msgs.msg import Image
+
+    from neurncd_ros.core.data.bag import FrameReader
+
+    node, domain = ros_node
+    stamps = [f.stamp_ns for f in FrameReader(small_bag)]
+    first, second = [], []
+    topic = "/camera/depth/image_raw"
+    node.create_subscription(Image, topic, lambda m: first.append(
+        msgconv.stamp_to_ns(m.header.stamp)), 20)
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo
+    for t, kind in (("/camera/color/image_raw", Image), ("/camera/pose", PoseStamped),
+                    ("/camera/color/camera_info", CameraInfo)):  # every input the replay waits for
+        node.create_subscription(kind, t, lambda m: None, 20)
+    log = tmp_path / "replay.log"
+    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                  f"replay.bag:={small_bag}"], ros_env(domain), log)
+    try:
+        assert spin_until(node, lambda: node.count_publishers(topic) > 0, 120), \
+            log.read_text()
+        # The scenario: a second node subscribes a moment later (well within settle_s).
+        spin_until(node, lambda: False, 0.3)
+        node.create_subscription(Image, topic, lambda m: second.append(
+            msgconv.stamp_to_ns(m.header.stamp)), 20)
+        assert spin_until(node, lambda: len(second) == len(stamps), 120), (second,
+                                                                          log.read_text())
+        assert proc.wait(timeout=60) == 0, log.read_text()
+    finally:
+        stop(proc)
+    assert second == stamps and first == stamps
+
+
 @pytest.mark.parametrize("node_name, sig, extra", [
     ("embedding", "SIGINT", []),
     ("mapper", "SIGTERM", []),

@@ -4,7 +4,8 @@ There is no ros2 launch wheel, so this is a small process supervisor, each
 node in its own process (the field's training and the backbone do not share a
 GIL), all with one parameter file:
 
-- a node that exits stops the others (bringup exits with its code);
+- a node that exits stops the others (bringup exits with its code; 128 + the signal
+  number for a node killed by a signal, as a shell reports it);
 - with ``--bag``, the replay starts once every node reports on /diagnostics
   (it is up and subscribed) and the mapper and discovery see their upstream
   node's publisher (at most ``--ready-timeout``), so nothing the bag
@@ -18,7 +19,12 @@ GIL), all with one parameter file:
   save); a node that does not stop within ``--stop-timeout`` is killed;
 - no child outlives bringup: each runs in its own process group (so a
   terminal's Ctrl-C reaches bringup, which stops them in order) with a
-  parent-death signal, so they get SIGTERM even if bringup is killed.
+  parent-death signal, so they get SIGTERM even if bringup is killed. They start
+  with SIGINT and SIGTERM blocked, and unblock them once their handlers are installed
+  (``Shutdown.install``), so a stop sent while a child is still starting is held until
+  it can be handled instead of ending the child's interpreter with a traceback;
+- a parameter file that is not valid YAML or not valid for the schema is reported on
+  one line naming the file, exit code 2 (as ``neurncd`` does).
 """
 
 from __future__ import annotations
@@ -32,7 +38,8 @@ import sys
 import threading
 import time
 
-from .common import Shutdown, diagnostics_status, ensure_dds_profile, share_file
+from .common import (STOP_SIGNALS, ConfigError, Shutdown, diagnostics_status,
+                     ensure_dds_profile, exit_status, params_file_error, share_file)
 
 NODES = ("embedding", "mapper", "discovery")
 PR_SET_PDEATHSIG = 1
@@ -40,6 +47,9 @@ PR_SET_PDEATHSIG = 1
 
 def _child_setup() -> None:  # runs in the child between fork and exec
     os.setpgrp()
+    # Held until the node's own handlers are in (Shutdown.install unblocks them): the mask
+    # survives exec, the Python handlers bringup installed do not.
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:  # not Linux: the process group still lets bringup stop it
@@ -73,6 +83,7 @@ class DrainWatcher:
         self._latest: dict[str, tuple[float, int]] = {}
         self._connected: dict[str, bool] = {}
         self._lock = threading.Lock()
+        self._stop = threading.Event()
         self.node.create_subscription(DiagnosticArray, topic, self._on_diag, 50)
         self._executor = SingleThreadedExecutor(context=self._context)
         self._executor.add_node(self.node)
@@ -80,7 +91,7 @@ class DrainWatcher:
         self._thread.start()
 
     def _spin(self) -> None:
-        while self._context.ok():
+        while not self._stop.is_set() and self._context.ok():
             try:
                 self._executor.spin_once(timeout_sec=0.1)
             except Exception:  # noqa: BLE001 - the context went away at shutdown
@@ -111,6 +122,9 @@ class DrainWatcher:
                        and self._latest[name][1] == 0 for name in NODES)
 
     def close(self) -> None:
+        """Stop spinning first, then destroy: no callback may run on a destroyed node."""
+        self._stop.set()
+        self._thread.join(timeout=2.0)
         try:
             self._executor.shutdown(timeout_sec=1.0)
             self.node.destroy_node()
@@ -134,6 +148,9 @@ def _stop_all(procs: dict[str, subprocess.Popen], timeout: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Start the nodes (and the replay), supervise them, stop them; the exit code."""
+    # First: until the nodes are started a signal ends bringup at once, exit 0.
+    shutdown = Shutdown("bringup").install(starting=True)
     parser = argparse.ArgumentParser(
         prog="bringup", description="Start the embedding, mapper and discovery nodes with "
         "one parameter file; with --bag also replay a bag into them and stop once they "
@@ -160,15 +177,25 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"parameter file {args.params_file} does not exist")
     if args.bag and not os.path.exists(args.bag):
         parser.error(f"bag {args.bag} does not exist")
-    shutdown = Shutdown().install()
-    ensure_dds_profile()
     from .. import config as config_mod
 
-    topic = config_mod.load(args.params_file).topics.diagnostics
+    try:
+        problem = params_file_error(args.params_file)
+        if problem:
+            raise ConfigError(problem)
+        topic = config_mod.load(args.params_file).topics.diagnostics
+    except ConfigError as err:
+        print(f"bringup: configuration error: {err}", file=sys.stderr)
+        return 2
+    ensure_dds_profile()
+    shutdown.started()
     watcher = DrainWatcher(topic)
     cmds = build_commands(args.params_file, args.bag, ros_args)
     replay_cmd = cmds.pop("replay", None)
-    procs = {name: subprocess.Popen(cmd, preexec_fn=_child_setup) for name, cmd in cmds.items()}
+    procs: dict[str, subprocess.Popen] = {}
+    if not shutdown.requested.is_set():  # not after a signal during the watcher's start
+        procs = {name: subprocess.Popen(cmd, preexec_fn=_child_setup)
+                 for name, cmd in cmds.items()}
     code = 0
     drain_from: float | None = None
     ready_by = time.monotonic() + args.ready_timeout
@@ -185,16 +212,17 @@ def main(argv: list[str] | None = None) -> int:
                     if n != "replay" and p.poll() is not None]
             if dead:
                 name, rc = dead[0]
-                print(f"bringup: {name} exited with code {rc}: stopping the others",
+                code, what = exit_status(rc)
+                code = code or 1  # a node is not meant to end on its own
+                print(f"bringup: {name} {what}: stopping the others; bringup exits {code}",
                       file=sys.stderr)
-                code = rc or 1
                 break
             replay = procs.get("replay")
             if replay is not None and drain_from is None and replay.poll() is not None:
                 if replay.returncode != 0:
-                    print(f"bringup: replay failed (code {replay.returncode}): stopping",
+                    code, what = exit_status(replay.returncode)
+                    print(f"bringup: replay failed ({what}): stopping; bringup exits {code}",
                           file=sys.stderr)
-                    code = replay.returncode
                     break
                 drain_from = time.monotonic()
                 print("bringup: the bag has been played; waiting for the nodes to finish",
@@ -208,6 +236,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"bringup: nodes still busy {args.drain_timeout:g} s after the bag "
                           "ended: stopping", file=sys.stderr)
                     break
+        if shutdown.requested.is_set():
+            print(f"bringup: {shutdown.signal_name}: stopping the nodes", file=sys.stderr)
     finally:
         _stop_all(procs, args.stop_timeout)
         watcher.close()

@@ -7,16 +7,26 @@ Kept small on purpose: a node is parameters in, messages converted (with
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
+import re
+import signal
 import sys
+import threading
+import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-import numpy as np
-
-from ..core import msgconv
-from .. import config as config_mod
+# Only the standard library and the (standard-library only) ConfigError at the top: a node
+# module imports this before its main() installs the signal handlers, so anything heavy
+# here (numpy, the config schema, rclpy) would widen the window in which a signal is lost
+# or ends the start in a traceback. Heavier modules are imported where they are used.
 from ..core.params import ConfigError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from .. import config as config_mod
 
 PACKAGE = "neurncd_ros"
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
@@ -86,6 +96,8 @@ def declare_config(node: Any) -> config_mod.Config:
     does not know, a wrong type or an out-of-range value raises ConfigError
     naming the key and the allowed values.
     """
+    from .. import config as config_mod
+
     defaults = config_mod.default().to_flat()
     overrides = dict(node.get_parameters_by_prefix(""))  # auto-declared from overrides
     unknown = sorted(k for k in overrides if k not in defaults and not _ros_builtin(k))
@@ -109,28 +121,136 @@ def declare_config(node: Any) -> config_mod.Config:
     return config_mod.from_flat(values)
 
 
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 class Shutdown:
     """SIGINT and SIGTERM handled explicitly, also when the process started with SIGINT
     ignored (``cmd &`` from a script, nohup, some supervisors), where Python installs no
-    KeyboardInterrupt. The first signal asks for a clean stop; a second one exits at once."""
+    KeyboardInterrupt.
 
-    def __init__(self) -> None:
-        import threading
+    Two phases. While the process is *starting* (``install(starting=True)`` until
+    :meth:`started`: the imports, torch's take seconds, and the checks before rclpy.init)
+    a signal ends it at once with exit code 0: nothing has been opened or written that
+    would need closing, and ``os._exit`` is the one way out that no library's import code
+    can catch or turn into a traceback (an exception raised from the handler inside torch's
+    import could be swallowed by its ``except`` clauses, or end in a traceback). Once
+    started, the first signal asks for a clean stop (``requested``: the node stops its
+    workers, saves, logs its summary and exits 0); a second one exits at once.
+    """
+
+    def __init__(self, name: str = "") -> None:
+        self.name = name
         self.requested = threading.Event()
         self.signal_name = ""
+        self._starting = False
 
-    def install(self) -> "Shutdown":
-        import signal
-        for sig in (signal.SIGINT, signal.SIGTERM):
+    def install(self, starting: bool = False) -> "Shutdown":
+        """Take over SIGINT and SIGTERM (``starting``: in the exit-at-once phase)."""
+        self._starting = starting
+        for sig in STOP_SIGNALS:
             signal.signal(sig, self._handle)
+        # bringup starts its children with these signals blocked, so that one sent before
+        # this line waits (pending) for the handler instead of meeting the interpreter's
+        # default KeyboardInterrupt; now that the handler is in place, let it through.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
         return self
 
+    def started(self) -> None:
+        """From now on a signal asks for a clean stop instead of exiting at once."""
+        self._starting = False
+
     def _handle(self, signum, frame) -> None:
-        import signal
+        name = signal.Signals(signum).name
+        if self._starting:
+            # os.write, not print: the handler may run in the middle of a print.
+            os.write(2, f"{self.name or 'process'}: {name} while starting: exiting\n".encode())
+            os._exit(0)
         if self.requested.is_set():
             os._exit(128 + signum)
-        self.signal_name = signal.Signals(signum).name
+        self.signal_name = name
         self.requested.set()
+
+
+def exit_status(returncode: int) -> tuple[int, str]:
+    """A child's ``Popen.returncode`` as a shell would report it: (exit code, description).
+
+    A child killed by a signal has a negative returncode (-9); passed on as an exit code it
+    would be masked to a byte (247), so it becomes 128 + signal number (137), as a shell
+    reports it.
+    """
+    if returncode >= 0:
+        return returncode, f"exited with code {returncode}"
+    try:
+        name = signal.Signals(-returncode).name
+    except ValueError:
+        name = f"signal {-returncode}"
+    return 128 - returncode, f"was killed by {name} (exit code {128 - returncode})"
+
+
+def _yaml_problem(err: Exception) -> str:
+    """A PyYAML error on one line: where, then what (its own text spans several lines)."""
+    mark = getattr(err, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    what = getattr(err, "problem", None) or str(err)
+    return where + " ".join(str(what).split())
+
+
+def params_file_error(path: str | Path) -> str | None:
+    """What is wrong with a parameter file that cannot be read as YAML (one line naming the
+    file), or None. rcl's own message names neither the line's problem nor cleanly the file
+    (``Couldn't parse params file: '--params-file x'. Error: Error parsing a event ...``)."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        return f"parameter file {path} does not exist"
+    try:
+        yaml.safe_load(path.read_text())
+    except (OSError, UnicodeDecodeError) as err:
+        return f"parameter file {path} cannot be read: {err}"
+    except yaml.YAMLError as err:
+        return f"{path}: not valid YAML: {_yaml_problem(err)}"
+    return None
+
+
+def params_files(ros_args: list[str]) -> list[str]:
+    """The files given with ``--params-file`` among ROS arguments."""
+    return [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == "--params-file"]
+
+
+def ros_args_error(err: Exception) -> str:
+    """rcl's refusal of the ROS arguments on one line, without its source locations."""
+    text = str(err)
+    if type(err).__name__ == "UnknownROSArgsError":
+        return f"unknown ROS arguments: {text}"
+    text = re.sub(r",? at /\S+:\d+", "", text)
+    for prefix in ("Failed to parse ROS arguments: ", "failed to initialize rcl: "):
+        text = text.removeprefix(prefix)
+    return " ".join(text.split())
+
+
+def stop_executor(executor: Any, timeout_sec: float) -> None:
+    """Stop ``executor`` and wait for the callbacks it has already handed to its threads.
+
+    rclpy's (Jazzy) ``Executor.shutdown`` does not wait for them (it tests the flag it has
+    just set), so a timer or subscription callback could still run while the node is being
+    destroyed; it then fails with "cannot use Destroyable because destruction was
+    requested", which nobody collects and rclpy prints at exit as "The following exception
+    was never retrieved". Waiting for those tasks (a MultiThreadedExecutor keeps them in
+    ``_futures`` until it collects their results) and collecting their results here lets
+    the node be closed and destroyed when nothing uses it any more.
+    """
+    executor.shutdown(timeout_sec=timeout_sec)
+    deadline = time.monotonic() + timeout_sec
+    for task in list(getattr(executor, "_futures", ())):
+        while not (task.done() or task.cancelled()) and time.monotonic() < deadline:
+            time.sleep(0.01)  # rclpy futures have no blocking wait without a spinning executor
+        if task.done():
+            err = task.exception()  # collected: rclpy would print it at exit otherwise
+            if err is not None:
+                print(f"a callback failed while stopping: {type(err).__name__}: {err}",
+                      file=sys.stderr)
 
 
 def ros_logger(node: Any):
@@ -153,37 +273,60 @@ def ros_logger(node: Any):
 
 
 def run_node(factory: Callable[[], Any], name: str, description: str,
-             argv: list[str] | None = None) -> int:
-    """Standard main(): help, DDS profile, signals, rclpy init, spin, clean shutdown.
+             argv: list[str] | None = None, preload: tuple[str, ...] = ()) -> int:
+    """Standard main(): signals, help, DDS profile, rclpy init, spin, clean shutdown.
 
-    ``factory`` builds the node after ``rclpy.init``. The node may define
-    ``close()`` (called once on the way out: stop workers, save state, log a
-    summary), ``done`` (an Event: the node has finished its work, e.g. a replay
-    at the end of its bag) and ``exit_code``. A ConfigError is printed and
-    exits 2 instead of a traceback.
+    The signal handlers come first, before anything heavy is imported: ``preload`` names
+    the node's core modules (torch, scipy), which are imported next, before rclpy (the
+    order the nodes have always loaded them in), and a signal until rclpy.init ends the
+    process at once with code 0 (see :class:`Shutdown`). ``factory`` builds the node after
+    ``rclpy.init``. The node may define ``close()`` (called once on the way out: stop
+    workers, save state, log a summary), ``done`` (an Event: the node has finished its
+    work, e.g. a replay at the end of its bag) and ``exit_code``. A ConfigError, a
+    parameter file that is not YAML and ROS arguments rcl refuses are printed on one line
+    and exit 2 instead of a traceback.
     """
+    shutdown = Shutdown(name).install(starting=True)
     _, ros_args = parse_cli(name, description, argv)
-    shutdown = Shutdown().install()
+    for path in params_files(ros_args):
+        problem = params_file_error(path)
+        if problem:
+            print(f"{name}: configuration error: {problem}", file=sys.stderr)
+            return 2
+    for module in preload:
+        importlib.import_module(module)
     ensure_dds_profile()
     import cv2
     cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
+    from rclpy.utilities import remove_ros_args
 
+    try:  # checked before rclpy.init, which would also log a line of its own
+        remove_ros_args([name, *ros_args])
+    except RuntimeError as err:  # RCLInvalidROSArgsError, UnknownROSArgsError
+        print(f"{name}: error: {ros_args_error(err)}", file=sys.stderr)
+        return 2
+    shutdown.started()
     rclpy.init(args=[name, *ros_args], signal_handler_options=SignalHandlerOptions.NO)
     node = None
     executor = None
     code = 0
     try:
-        node = factory()
-        executor = MultiThreadedExecutor(num_threads=3)
-        executor.add_node(node)
-        done = getattr(node, "done", None)
-        while rclpy.ok() and not shutdown.requested.is_set() and not (done and done.is_set()):
-            executor.spin_once(timeout_sec=0.1)  # short waits: signals are seen promptly
+        if not shutdown.requested.is_set():  # a signal during rclpy.init: build nothing
+            node = factory()
+            executor = MultiThreadedExecutor(num_threads=3)
+            executor.add_node(node)
+            done = getattr(node, "done", None)
+            while (rclpy.ok() and not shutdown.requested.is_set()
+                   and not (done and done.is_set())):
+                executor.spin_once(timeout_sec=0.1)  # short waits: signals are seen promptly
         if shutdown.requested.is_set():
-            node.get_logger().info(f"{shutdown.signal_name}: shutting down")
+            if node is not None:
+                node.get_logger().info(f"{shutdown.signal_name}: shutting down")
+            else:
+                print(f"{name}: {shutdown.signal_name}: shutting down", file=sys.stderr)
         code = int(getattr(node, "exit_code", 0) or 0)
     except ConfigError as err:
         print(f"{name}: configuration error: {err}", file=sys.stderr)
@@ -195,9 +338,10 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
         pass
     finally:
         if executor is not None:
-            # Before the context goes: an executor left to the garbage collector destroys its
-            # SIGINT guard condition after rclpy.shutdown, and that raises at exit.
-            executor.shutdown(timeout_sec=5.0)
+            # Before the node goes: no callback may still be running when it is destroyed,
+            # and before the context goes: an executor left to the garbage collector
+            # destroys its SIGINT guard condition after rclpy.shutdown, and that raises at exit.
+            stop_executor(executor, timeout_sec=5.0)
         if node is not None:
             close = getattr(node, "close", None)
             if close:
@@ -241,7 +385,10 @@ def view_qos(depth: int = 10):
 
 def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
     """An rclpy sensor_msgs/Image from ``msgconv.image_fields``-style fields."""
+    import numpy as np
     from sensor_msgs.msg import Image
+
+    from ..core import msgconv
     msg = Image()
     msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id
@@ -254,12 +401,15 @@ def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
 
 def image_msg(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str, topic: str = ""):
     """A sensor_msgs/Image of ``arr`` (``topic`` names it in a conversion error)."""
+    from ..core import msgconv
     return make_image(msgconv.image_fields(arr, encoding, topic), stamp_ns, frame_id)
 
 
 def camera_info_msg(intr, stamp_ns: int, frame_id: str):
     """A sensor_msgs/CameraInfo of pinhole intrinsics ``intr``."""
     from sensor_msgs.msg import CameraInfo
+
+    from ..core import msgconv
     f = msgconv.camera_info_fields(intr)
     msg = CameraInfo()
     msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
@@ -272,6 +422,8 @@ def camera_info_msg(intr, stamp_ns: int, frame_id: str):
 def pose_msg(T: np.ndarray, stamp_ns: int, frame_id: str):
     """A geometry_msgs/PoseStamped of the 4x4 camera-to-world ``T``."""
     from geometry_msgs.msg import PoseStamped
+
+    from ..core import msgconv
     f = msgconv.matrix_to_pose_fields(T)
     msg = PoseStamped()
     msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
@@ -284,6 +436,7 @@ def pose_msg(T: np.ndarray, stamp_ns: int, frame_id: str):
 
 def header_ns(msg: Any) -> int:
     """A message's header stamp in nanoseconds."""
+    from ..core import msgconv
     return msgconv.stamp_to_ns(msg.header.stamp)
 
 

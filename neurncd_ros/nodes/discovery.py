@@ -14,11 +14,7 @@ from __future__ import annotations
 
 import json
 
-from ..core import classes, msgconv
-from ..core.engine.discovery import DiscoveryStage  # before rclpy: scipy/torch load first
-from ..core.engine.health import Health
-from ..core.engine.records import EmbeddingSpec
-from ..core.engine.worker import Worker
+# Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
                      output_qos, ros_logger, run_node, view_qos)
 
@@ -27,12 +23,22 @@ DESCRIPTION = ("Segments each rendered view's depth into convex segments, cluste
                "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON).")
 
 
+# Imported by run_node before rclpy (torch, scipy first), once the signal handlers are in.
+PRELOAD = ("neurncd_ros.core.engine.discovery",)
+
+
 def make_node():
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
+
+    from ..core import classes, msgconv
+    from ..core.engine.discovery import DiscoveryStage
+    from ..core.engine.health import Health
+    from ..core.engine.records import EmbeddingSpec
+    from ..core.engine.worker import Worker
 
     class DiscoveryNode(Node):
         def __init__(self) -> None:
@@ -130,7 +136,7 @@ def make_node():
 
 
 def main(argv=None) -> int:
-    return run_node(make_node, "discovery", DESCRIPTION, argv)
+    return run_node(make_node, "discovery", DESCRIPTION, argv, preload=PRELOAD)
 
 
 if __name__ == "__main__":

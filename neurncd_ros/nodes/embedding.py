@@ -9,12 +9,7 @@ is published once, latched, on ``topics.embedding_spec``.
 
 from __future__ import annotations
 
-from ..core import msgconv
-# before rclpy: scipy/torch load first
-from ..core.backbone.backbone import load_backbone, threshold_warning
-from ..core.engine.embedding import EmbeddingStage
-from ..core.engine.health import Health
-from ..core.engine.worker import Worker
+# Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
                      output_qos, ros_logger, run_node, sensor_qos)
 
@@ -23,12 +18,22 @@ DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colo
                "/neurncd/embedding, with what the channels mean on /neurncd/embedding/spec.")
 
 
+# Imported by run_node before rclpy (torch, scipy first), once the signal handlers are in.
+PRELOAD = ("neurncd_ros.core.backbone.backbone", "neurncd_ros.core.engine.embedding")
+
+
 def make_node():
     import torch
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.node import Node
     from sensor_msgs.msg import Image
     from std_msgs.msg import String
+
+    from ..core import msgconv
+    from ..core.backbone.backbone import load_backbone, threshold_warning
+    from ..core.engine.embedding import EmbeddingStage
+    from ..core.engine.health import Health
+    from ..core.engine.worker import Worker
 
     class EmbeddingNode(Node):
         def __init__(self) -> None:
@@ -113,7 +118,7 @@ def make_node():
 
 
 def main(argv=None) -> int:
-    return run_node(make_node, "embedding", DESCRIPTION, argv)
+    return run_node(make_node, "embedding", DESCRIPTION, argv, preload=PRELOAD)
 
 
 if __name__ == "__main__":

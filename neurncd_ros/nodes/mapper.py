@@ -19,17 +19,7 @@ from __future__ import annotations
 
 import os
 
-import cv2
-import torch
-
-from ..core import msgconv
-from ..core.engine.health import Health  # before rclpy: scipy/torch load first
-from ..core.engine.mapping import MapperStage
-from ..core.engine.poses import PoseStage
-from ..core.engine.offline import mapper_factory
-from ..core.engine.records import EmbeddingRecord, EmbeddingSpec
-from ..core.engine.worker import Worker
-from ..core.field.mapper import Mapper
+# Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (camera_info_msg, declare_config, diagnostics_msg, header_ns,
                      image_msg, latched_qos, pose_msg, ros_logger, run_node, sensor_qos,
                      view_qos)
@@ -40,13 +30,29 @@ DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and pub
                "Services ~/save_map and ~/reset (std_srvs/Trigger).")
 
 
+# Imported by run_node before rclpy (torch, scipy first), once the signal handlers are in.
+PRELOAD = ("torch", "neurncd_ros.core.engine.mapping", "neurncd_ros.core.engine.offline",
+           "neurncd_ros.core.field.mapper")
+
+
 def make_node():
+    import cv2
+    import torch
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
+
+    from ..core import msgconv
+    from ..core.engine.health import Health
+    from ..core.engine.mapping import MapperStage
+    from ..core.engine.offline import mapper_factory
+    from ..core.engine.poses import PoseStage
+    from ..core.engine.records import EmbeddingRecord, EmbeddingSpec
+    from ..core.engine.worker import Worker
+    from ..core.field.mapper import Mapper
 
     class MapperNode(Node):
         def __init__(self) -> None:
@@ -304,7 +310,7 @@ def make_node():
 
 
 def main(argv=None) -> int:
-    return run_node(make_node, "mapper", DESCRIPTION, argv)
+    return run_node(make_node, "mapper", DESCRIPTION, argv, preload=PRELOAD)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,11 @@ def make_node():
                 raise ValueError("replay.bag is empty: give a bag with -p replay.bag:=PATH")
             self.done = threading.Event()
             self.exit_code = 0
-            self.published = 0
+            self.published = 0  # in all passes
+            self.in_bag = 0  # messages on the replayed topics, per pass
+            self.passes = 0
+            self.published_in_pass = 0
+            self._started = None  # monotonic time the playing began
             self._stop = threading.Event()
             self.publishers_by_topic = {}
             try:
@@ -64,6 +68,8 @@ def make_node():
                         message_class(msgtype), topic, qos)
                 except ValueError as err:
                     self.get_logger().warning(f"{topic} is not replayed: {err}")
+            self.in_bag = sum(count for topic, (_, count) in topics.items()
+                              if topic in self.publishers_by_topic)
             self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
                                 if x in self.publishers_by_topic]
             self._thread = threading.Thread(target=self._run, daemon=True, name="replay")
@@ -75,17 +81,28 @@ def make_node():
             self.done.set()
 
         def _wait_for_subscribers(self) -> None:
+            """Until every input topic has a subscriber and the counts have held still for
+            ``settle_s``: a publisher sees a subscriber as soon as its own side of the match
+            is done, and a first frame published then can miss a node whose side is not
+            (or a second node, such as the mapper beside the embedding node, not matched
+            yet): one of five bringup runs lost the bag's first frame that way."""
             limit = self.cfg.wait_for_subscribers_s
             if limit <= 0 or not self.wait_topics:
                 return
             end = time.monotonic() + limit
+            counts, since, missing = None, 0.0, list(self.wait_topics)
             while time.monotonic() < end and not self._stop.is_set():
-                missing = [x for x in self.wait_topics
-                           if self.publishers_by_topic[x].get_subscription_count() == 0]
-                if not missing:
+                now = tuple(self.publishers_by_topic[x].get_subscription_count()
+                            for x in self.wait_topics)
+                missing = [x for x, n in zip(self.wait_topics, now) if n == 0]
+                if missing:
+                    counts = None
+                elif now != counts:
+                    counts, since = now, time.monotonic()
+                elif time.monotonic() - since >= self.cfg.settle_s:
                     return
-                self._stop.wait(0.1)
-            if not self._stop.is_set():
+                self._stop.wait(0.05)
+            if not self._stop.is_set() and missing:
                 self.get_logger().warning(f"no subscriber on {', '.join(missing)} after "
                                           f"{limit:g} s: playing anyway")
 
@@ -93,6 +110,8 @@ def make_node():
             t0_wall = t0_bag = None
             offset = int(self.cfg.start_offset_s * 1e9)
             first = None
+            self.passes += 1
+            self.published_in_pass = 0
             for topic, _msgtype, stamp, raw in iter_raw(self.cfg.bag):
                 if self._stop.is_set():
                     return
@@ -110,12 +129,13 @@ def make_node():
                     return
                 pub.publish(raw)
                 self.published += 1
+                self.published_in_pass += 1
 
         def _run(self) -> None:
             self._wait_for_subscribers()
             if self.cfg.delay_s > 0 and self._stop.wait(self.cfg.delay_s):
                 return
-            t0 = time.monotonic()
+            self._started = time.monotonic()
             try:
                 while not self._stop.is_set():
                     self._play_once()
@@ -124,8 +144,10 @@ def make_node():
             except BagError as err:
                 self.fail(str(err))
                 return
+            if self._stop.is_set():  # stopped mid-bag: close() says where
+                return
             self.get_logger().info(f"replay finished: {self.published} messages in "
-                                   f"{time.monotonic() - t0:.1f} s")
+                                   f"{time.monotonic() - self._started:.1f} s")
             self._flush()
             self.done.set()
 
@@ -145,6 +167,18 @@ def make_node():
             thread = getattr(self, "_thread", None)
             if thread is not None:
                 thread.join(timeout=2)
+            if not self.done.is_set():  # neither at the end of the bag nor failed: stopped
+                self.get_logger().info(self.stopped_summary())
+
+        def stopped_summary(self) -> str:
+            """Where a replay stopped before the end of its bag, in messages and seconds."""
+            if self._started is None:
+                return f"replay stopped before playing: 0 of the bag's {self.in_bag} messages"
+            text = (f"replay stopped after {self.published_in_pass} of the bag's "
+                    f"{self.in_bag} messages")
+            if self.passes > 1:
+                text += f" in pass {self.passes} ({self.published} in all passes)"
+            return text + f", {time.monotonic() - self._started:.1f} s after it started"
 
     return ReplayNode()
 

@@ -1,0 +1,305 @@
+"""Node processes from their first instant to their exit: a stop signal while a node is
+still importing torch, bad parameter files and ROS arguments, a child of bringup killed
+by a signal, a replay stopped mid-bag, and no callback left running when a node goes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+import rosutil
+from rosutil import REPO, apply_ros_env, node_processes, ros_env, spin_until
+
+pytestmark = pytest.mark.ros
+
+BAD_YAML = "/**:\n  ros__parameters:\n    mapper:\n      backend: fast\n     iterations: 3\n"
+BAD_SECTION = "/**:\n  ros__parameters:\n    mapper: 3\n"
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory):
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    path = tmp_path_factory.mktemp("bag") / "scene.mcap"
+    write_bag(path, synth.generate(1003, 15, synth.SynthConfig(width=96, height=72)))
+    return path
+
+
+def _status_mask(pid: int, field: str) -> int:
+    """A signal mask of /proc/<pid>/status (SigCgt: caught, SigBlk: blocked); 0 if gone."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1], 16)
+    except OSError:
+        pass
+    return 0
+
+
+def _catches(pid: int, *sigs: signal.Signals) -> bool:
+    mask = _status_mask(pid, "SigCgt")
+    return all(mask >> (s - 1) & 1 for s in sigs)
+
+
+def _torch_loaded(pid: int) -> bool:
+    try:
+        return "libtorch" in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
+def _wait_for(predicate, timeout: float) -> bool:
+    """Poll a condition of another process (there is no event to block on) until true."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return predicate()
+
+
+def _start(args: list[str], env: dict[str, str], ignore_sigint: bool = False,
+           block: bool = False) -> subprocess.Popen:
+    """``python args`` with stdout and stderr captured; ``ignore_sigint`` as `cmd &` from a
+    script starts it; ``block``: SIGINT and SIGTERM blocked, as bringup starts a node."""
+    def setup() -> None:
+        if ignore_sigint:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if block:
+            signal.pthread_sigmask(signal.SIG_BLOCK, (signal.SIGINT, signal.SIGTERM))
+    return subprocess.Popen([sys.executable, *args], env=env, cwd=REPO, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=setup)
+
+
+def _finish(proc: subprocess.Popen, timeout: float) -> tuple[int | None, str]:
+    """(exit code, output) once it exits within ``timeout``; (None, output) if it had to be
+    killed."""
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        return proc.returncode, out + err
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        return None, out + err
+
+
+@pytest.mark.parametrize("node_name, sig, ignore_sigint", [
+    ("embedding", signal.SIGINT, True),   # `embedding &` from a script, stopped by kill -INT
+    ("mapper", signal.SIGINT, False),     # Ctrl-C in a terminal
+    ("discovery", signal.SIGTERM, True),
+    ("replay", signal.SIGINT, True),
+])
+def test_signal_while_importing_exits_at_once_without_traceback(node_name, sig, ignore_sigint,
+                                                                small_bag):
+    """The handlers are in before torch loads, so a stop sent while the node imports is
+    neither lost (SIGINT ignored) nor a KeyboardInterrupt traceback: exit 0 at once."""
+    proc = _start(["-m", f"neurncd_ros.nodes.{node_name}", "--ros-args", "-p",
+                   f"replay.bag:={small_bag}"], ros_env(rosutil.domain(14)), ignore_sigint)
+    try:
+        assert _wait_for(lambda: _catches(proc.pid, signal.SIGINT, signal.SIGTERM)
+                         or proc.poll() is not None, 30)
+        if node_name != "replay":
+            assert not _torch_loaded(proc.pid), "the handlers came only after torch loaded"
+        proc.send_signal(sig)
+    finally:
+        code, text = _finish(proc, 10)
+    assert code == 0, text[-2000:]
+    assert f"{node_name}: {sig.name} while starting: exiting" in text, text[-2000:]
+    assert "Traceback" not in text, text[-2000:]
+
+
+def test_signal_held_while_starting_is_handled_once_the_node_can(small_bag):
+    """As bringup starts a node (stop signals blocked until its handlers are in), a signal
+    sent at once after start is handled, not left pending forever (nor a traceback)."""
+    proc = _start(["-m", "neurncd_ros.nodes.discovery"], ros_env(rosutil.domain(14)),
+                  ignore_sigint=True, block=True)
+    try:
+        proc.send_signal(signal.SIGINT)
+    finally:
+        code, text = _finish(proc, 20)
+    assert code == 0, text[-2000:]
+    assert "Traceback" not in text, text[-2000:]
+
+
+def _bringup(bag: Path, domain: int) -> subprocess.Popen:
+    return _start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--stop-timeout",
+                   "20"], ros_env(domain), ignore_sigint=True)
+
+
+def _children(domain: int, parent: int) -> dict[str, int]:
+    """Node name -> pid of bringup's children on ``domain``."""
+    out = {}
+    for pid in node_processes(domain):
+        if pid == parent:
+            continue
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        name = next((a.decode().rsplit(".", 1)[1] for a in cmd
+                     if a.startswith(b"neurncd_ros.nodes.")), "")
+        out[name] = pid
+    return out
+
+
+def test_bringup_stopped_while_its_nodes_start_stops_them_without_tracebacks(small_bag):
+    """bringup started in the background and stopped while its nodes are still importing:
+    it exits 0, and so do they, without a KeyboardInterrupt traceback; none is left."""
+    domain = rosutil.domain(15)
+    proc = _bringup(small_bag, domain)
+    try:
+        assert _wait_for(lambda: len(_children(domain, proc.pid)) == 3
+                         or proc.poll() is not None, 60)
+        proc.send_signal(signal.SIGINT)
+    finally:
+        code, text = _finish(proc, 40)
+    assert code == 0, text[-3000:]
+    assert "Traceback" not in text, text[-3000:]
+    assert "bringup: SIGINT: stopping the nodes" in text, text[-3000:]
+    assert not node_processes(domain), "a node outlived bringup"
+
+
+def test_bringup_reports_a_child_killed_by_a_signal_as_128_plus_the_signal(small_bag):
+    domain = rosutil.domain(15)
+    proc = _bringup(small_bag, domain)
+    try:
+        assert _wait_for(lambda: "mapper" in _children(domain, proc.pid)
+                         or proc.poll() is not None, 60)
+        os.kill(_children(domain, proc.pid)["mapper"], signal.SIGKILL)
+    finally:
+        code, text = _finish(proc, 40)
+    assert code == 128 + signal.SIGKILL, text[-3000:]
+    assert ("bringup: mapper was killed by SIGKILL (exit code 137): stopping the others; "
+            "bringup exits 137") in text, text[-3000:]
+    assert "Traceback" not in text, text[-3000:]
+    assert not node_processes(domain), "a node outlived bringup"
+
+
+def _one_line_error(r: subprocess.CompletedProcess, expect: str) -> None:
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and expect in lines[0], r.stderr
+
+
+def test_node_reports_a_parameter_file_that_is_not_yaml_on_one_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(BAD_YAML)
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.replay", "--ros-args",
+                        "--params-file", str(bad)], env=ros_env(rosutil.domain(14)),
+                       capture_output=True, text=True, timeout=60, cwd=REPO)
+    _one_line_error(r, f"replay: configuration error: {bad}: not valid YAML: line 5, "
+                       "column 6: expected <block end>")
+
+
+@pytest.mark.parametrize("args, expect", [
+    (["-p", "foo"], "replay: error: Couldn't parse parameter override rule: '-p foo'"),
+    (["--no-such-flag"], "replay: error: unknown ROS arguments"),
+])
+def test_node_reports_ros_arguments_rcl_refuses_on_one_line(args, expect):
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.replay", "--ros-args", *args],
+                       env=ros_env(rosutil.domain(14)), capture_output=True, text=True,
+                       timeout=60, cwd=REPO)
+    _one_line_error(r, expect)
+    assert "/project/src" not in r.stderr  # rcl's source locations are left out
+
+
+@pytest.mark.parametrize("text, expect", [
+    (BAD_YAML, "not valid YAML: line 5, column 6"),
+    (BAD_SECTION, "mapper: section must be a mapping of parameters, got 3"),
+])
+def test_bringup_reports_a_bad_parameter_file_on_one_line(text, expect, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.bringup", "--params-file",
+                        str(bad)], env=ros_env(rosutil.domain(15)), capture_output=True,
+                       text=True, timeout=60, cwd=REPO)
+    _one_line_error(r, f"bringup: configuration error: {bad}: {expect}")
+    assert not node_processes(rosutil.domain(15))
+
+
+def test_replay_stopped_mid_bag_says_so_and_where(small_bag):
+    """A replay stopped by a signal does not claim to have finished: it tells how many of
+    the bag's messages it published."""
+    from neurncd_ros.core.data.bag import bag_topics
+
+    domain = rosutil.domain(14)
+    apply_ros_env(domain)
+    import rclpy
+    from sensor_msgs.msg import Image
+
+    from neurncd_ros.nodes.common import sensor_qos
+
+    total = sum(count for _, count in bag_topics(small_bag).values())
+    rclpy.init()
+    node = rclpy.create_node("replay_watcher")
+    seen: list = []
+    node.create_subscription(Image, "/camera/depth/image_raw", seen.append, sensor_qos(5))
+    proc = _start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                   f"replay.bag:={small_bag}", "-p", "replay.rate:=0.05"], ros_env(domain))
+    try:
+        assert spin_until(node, lambda: bool(seen) or proc.poll() is not None, 60)
+        proc.send_signal(signal.SIGTERM)
+    finally:
+        code, text = _finish(proc, 30)
+        node.destroy_node()
+        rclpy.shutdown()
+    assert code == 0, text[-2000:]
+    assert "replay finished" not in text, text[-2000:]
+    assert f"of the bag's {total} messages" in text and "replay stopped after " in text, \
+        text[-2000:]
+
+
+def test_stop_executor_waits_for_callbacks_already_running():
+    """The node is destroyed only once no callback runs: rclpy's Executor.shutdown alone
+    returns while one still does, which then fails on the destroyed node ("cannot use
+    Destroyable because destruction was requested", printed at exit)."""
+    apply_ros_env(rosutil.domain(14))
+    import rclpy
+    from rclpy.executors import MultiThreadedExecutor
+    from std_msgs.msg import String
+
+    from neurncd_ros.nodes.common import stop_executor
+
+    rclpy.init()
+    node = rclpy.create_node("stop_executor_test")
+    pub = node.create_publisher(String, "/stop_executor_test", 1)
+    entered, release = threading.Event(), threading.Event()
+    outcome: list[str] = []
+
+    def callback() -> None:
+        if entered.is_set():
+            return
+        entered.set()
+        release.wait(5)
+        try:
+            pub.publish(String(data="late"))
+            outcome.append("published")
+        except Exception as err:  # noqa: BLE001 - what the test looks for
+            outcome.append(repr(err))
+
+    node.create_timer(0.01, callback)
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    try:
+        end = time.monotonic() + 10
+        while not entered.is_set() and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.05)
+        assert entered.is_set()
+        shutdown = executor.shutdown
+
+        def shutdown_then_release(*args, **kwargs):
+            result = shutdown(*args, **kwargs)
+            release.set()  # the callback goes on only once the executor was told to stop
+            return result
+        executor.shutdown = shutdown_then_release
+        stop_executor(executor, timeout_sec=5.0)
+        assert outcome == ["published"], outcome
+    finally:
+        release.set()
+        node.destroy_node()
+        rclpy.shutdown()
