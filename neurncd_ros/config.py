@@ -288,6 +288,15 @@ class _StrictLoader(yaml.SafeLoader):
         return f"key {'.'.join(path)!r}"
 
 
+def yaml_problem(err: Exception) -> str:
+    """A PyYAML error on one line: where, then what (its own text spans several lines, with
+    a caret under the offending character, which a log line or an error line cannot hold)."""
+    mark = getattr(err, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    what = getattr(err, "problem", None) or str(err)
+    return where + " ".join(str(what).split())
+
+
 def strict_yaml_load(text: str) -> Any:
     """``yaml.safe_load`` that raises :class:`DuplicateKeyError` for a key given twice in
     one mapping instead of keeping the last value."""
@@ -304,7 +313,7 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
     except DuplicateKeyError as err:
         raise ConfigError(f"{source}: {err}") from None
     except yaml.YAMLError as err:
-        raise ConfigError(f"{source}: not valid YAML: {err}") from None
+        raise ConfigError(f"{source}: not valid YAML: {yaml_problem(err)}") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):

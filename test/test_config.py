@@ -97,6 +97,11 @@ def test_file_errors(tmp_path):
     bad.write_text("/**: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         config.load(bad)
+    bad.write_text("x:\n  a: 1\n   b: [\n")  # PyYAML's own text spans lines, with a caret
+    with pytest.raises(ConfigError) as err:
+        config.load(bad)
+    assert str(err.value) == (f"{bad}: not valid YAML: line 3, column 5: mapping values "
+                              "are not allowed here")
 
 
 def test_overrides_and_flat_names():

@@ -186,14 +186,19 @@ def _one_line_error(r: subprocess.CompletedProcess, expect: str) -> None:
     assert len(lines) == 1 and expect in lines[0], r.stderr
 
 
-def test_node_reports_a_parameter_file_that_is_not_yaml_on_one_line(tmp_path):
+@pytest.mark.parametrize("text, expect", [
+    (BAD_YAML, "not valid YAML: line 5, column 6: expected <block end>"),
+    # rcl would take the last value silently; the node refuses as `neurncd` does
+    ("/**:\n  ros__parameters:\n    replay:\n      rate: 2.0\n      rate: 3.0\n",
+     "parameter 'replay.rate' (node '/**') is given twice (lines 4 and 5)"),
+])
+def test_node_reports_a_bad_parameter_file_on_one_line(text, expect, tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text(BAD_YAML)
+    bad.write_text(text)
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.replay", "--ros-args",
                         "--params-file", str(bad)], env=ros_env(rosutil.domain(14)),
                        capture_output=True, text=True, timeout=60, cwd=REPO)
-    _one_line_error(r, f"replay: configuration error: {bad}: not valid YAML: line 5, "
-                       "column 6: expected <block end>")
+    _one_line_error(r, f"replay: configuration error: {bad}: {expect}")
 
 
 @pytest.mark.parametrize("args, expect", [

@@ -188,29 +188,27 @@ def exit_status(returncode: int) -> tuple[int, str]:
     return 128 - returncode, f"was killed by {name} (exit code {128 - returncode})"
 
 
-def _yaml_problem(err: Exception) -> str:
-    """A PyYAML error on one line: where, then what (its own text spans several lines)."""
-    mark = getattr(err, "problem_mark", None)
-    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-    what = getattr(err, "problem", None) or str(err)
-    return where + " ".join(str(what).split())
-
-
 def params_file_error(path: str | Path) -> str | None:
     """What is wrong with a parameter file that cannot be read as YAML (one line naming the
     file), or None. rcl's own message names neither the line's problem nor cleanly the file
-    (``Couldn't parse params file: '--params-file x'. Error: Error parsing a event ...``)."""
+    (``Couldn't parse params file: '--params-file x'. Error: Error parsing a event ...``).
+    The file is read as the configuration reads it (:func:`..config.strict_yaml_load`: a key
+    given twice is refused too, which rcl would take silently, the last value winning)."""
     import yaml
+
+    from ..config import DuplicateKeyError, strict_yaml_load, yaml_problem
 
     path = Path(path)
     if not path.is_file():
         return f"parameter file {path} does not exist"
     try:
-        yaml.safe_load(path.read_text())
+        strict_yaml_load(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as err:
         return f"parameter file {path} cannot be read: {err}"
+    except DuplicateKeyError as err:
+        return f"{path}: {err}"
     except yaml.YAMLError as err:
-        return f"{path}: not valid YAML: {_yaml_problem(err)}"
+        return f"{path}: not valid YAML: {yaml_problem(err)}"
     return None
 
 
