@@ -308,3 +308,36 @@ def test_stop_executor_waits_for_callbacks_already_running():
         release.set()
         node.destroy_node()
         rclpy.shutdown()
+
+
+def test_stale_fast_dds_shared_memory_is_removed_and_live_segments_are_kept(tmp_path):
+    """A segment whose lock file nobody holds (its process was killed) is removed with its
+    lock and mutex; one whose lock is held (a running process) and one just created are
+    kept (what bringup and the test session do to /dev/shm)."""
+    import fcntl
+
+    from neurncd_ros.nodes.common import remove_stale_shm
+
+    def segment(name: str, age_s: float) -> Path:
+        seg = tmp_path / name
+        seg.write_bytes(b"\0" * 1000)
+        lock = tmp_path / f"{name}_el"
+        lock.touch()
+        old = time.time() - age_s
+        os.utime(lock, (old, old))
+        return lock
+
+    dead = segment("fastrtps_00000000000000aa", 120)
+    (tmp_path / "sem.fastrtps_00000000000000aa_mutex").write_bytes(b"\0" * 32)
+    live = segment("fastrtps_00000000000000bb", 120)
+    young = segment("fastrtps_00000000000000cc", 1)
+    fd = os.open(live, os.O_RDWR)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as the running owner holds it
+    try:
+        assert remove_stale_shm(tmp_path, min_age_s=60) == (1, 1032)
+    finally:
+        os.close(fd)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["fastrtps_00000000000000bb", "fastrtps_00000000000000bb_el",
+                    "fastrtps_00000000000000cc", "fastrtps_00000000000000cc_el"]
+    assert not dead.exists() and live.exists() and young.exists()

@@ -24,7 +24,10 @@ GIL), all with one parameter file:
   (``Shutdown.install``), so a stop sent while a child is still starting is held until
   it can be handled instead of ending the child's interpreter with a traceback;
 - a parameter file that is not valid YAML or not valid for the schema is reported on
-  one line naming the file, exit code 2 (as ``neurncd`` does).
+  one line naming the file, exit code 2 (as ``neurncd`` does);
+- before it starts the nodes and after they stop it removes the shared-memory segments
+  of Fast DDS processes that died without removing them (a node killed leaves a 128 MB
+  file in /dev/shm with the shipped profile, memory that is otherwise lost until reboot).
 """
 
 from __future__ import annotations
@@ -39,7 +42,8 @@ import threading
 import time
 
 from .common import (STOP_SIGNALS, ConfigError, Shutdown, diagnostics_status,
-                     ensure_dds_profile, exit_status, params_file_error, share_file)
+                     ensure_dds_profile, exit_status, params_file_error, remove_stale_shm,
+                     share_file)
 
 NODES = ("embedding", "mapper", "discovery")
 PR_SET_PDEATHSIG = 1
@@ -188,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bringup: configuration error: {err}", file=sys.stderr)
         return 2
     ensure_dds_profile()
+    _clean_shm(60.0)  # what earlier runs' killed processes left
     shutdown.started()
     watcher = DrainWatcher(topic)
     cmds = build_commands(args.params_file, args.bag, ros_args)
@@ -241,7 +246,17 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         _stop_all(procs, args.stop_timeout)
         watcher.close()
+        _clean_shm(5.0)  # a node killed after --stop-timeout (or by someone) left its own
     return code
+
+
+def _clean_shm(min_age_s: float) -> None:
+    """Free the shared memory of Fast DDS processes that died without removing it
+    (:func:`.common.remove_stale_shm`), saying so."""
+    n, freed = remove_stale_shm(min_age_s=min_age_s)
+    if n:
+        print(f"bringup: removed {n} shared-memory segment(s) ({freed / 2**20:.0f} MB) that "
+              "stopped Fast DDS processes left in /dev/shm", file=sys.stderr)
 
 
 if __name__ == "__main__":
