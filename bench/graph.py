@@ -35,6 +35,11 @@ estimated by the same odometry).
     .venv/bin/python bench/graph.py --frames 150 --seed 2001
     .venv/bin/python bench/graph.py --poses odometry
     .venv/bin/python bench/graph.py --sweep mapper.train_nice=0,10 --repeat 5
+    .venv/bin/python bench/graph.py --size 640x480   # graph_640x480.json
+
+``--size WxH`` plays the same scene at another frame size (640x480 is the size of
+NYUv2, TUM and Replica): the embedding, the views and discovery cost about as the
+pixels, so this is what a user replaying those datasets at their own size sees.
 
 ``--sweep SECTION.KEY=V1,V2,...`` measures only the live graph, once per value in each of
 ``--repeat`` rounds, the values interleaved within a round, so that the machine's drift
@@ -104,18 +109,24 @@ RECORDER = textwrap.dedent("""
 """)
 
 
-def make_bag(seed: int, frames: int, poses: str = "bag") -> Path:
-    """The scene's bag (cached); ``poses`` "odometry": the same frames without a pose topic."""
+def make_bag(seed: int, frames: int, poses: str = "bag",
+             size: tuple[int, int] | None = None) -> Path:
+    """The scene's bag (cached); ``poses`` "odometry": the same frames without a pose topic;
+    ``size`` (width, height): frames of that size instead of the generator's 320x240."""
     from neurncd_ros import synth
     from neurncd_ros.core.data.bag import write_bag
 
     suffix = "_noposes" if poses == "odometry" else ""
+    scfg = synth.SynthConfig() if size is None else synth.SynthConfig(width=size[0],
+                                                                      height=size[1])
+    if size is not None:
+        suffix += f"_{size[0]}x{size[1]}"
     path = Path(os.environ.get("NEURNCD_GRAPH_CACHE", "/tmp/neurncd_graph")) / \
         f"graph_s{seed}_n{frames}{suffix}.mcap"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         from tqdm import tqdm
-        write_bag(path, tqdm(synth.generate(seed, frames, synth.SynthConfig()), total=frames,
+        write_bag(path, tqdm(synth.generate(seed, frames, scfg), total=frames,
                              desc=f"synth seed {seed}", unit="frame"),
                   pose_mode="none" if poses == "odometry" else "topic")
     return path
@@ -311,7 +322,8 @@ def live_run(bag: Path, work: Path, params: list[str], frames: dict, seed: int,
     rate = (len(t_lab) - 1) / (t_lab[-1] - t_lab[0]) if len(t_lab) > 1 else 0.0
     kf_in_time = [s for s in keyframes if s in labels and labels[s] <= bag_end + 10.0]
     res = {
-        "seed": seed, "frames": n_frames, "fps": 30, "size": "320x240",
+        "seed": seed, "frames": n_frames, "fps": 30,
+        "size": "x".join(str(v) for v in next(iter(frames.values())).depth.shape[::-1]),
         "poses": "mapper odometry (bag without poses)" if odometry else "bag pose topic",
         "mapper_pose_summary": live["pose_summary"],
         "machine_probe_ms": round(probe, 1),
@@ -386,7 +398,17 @@ def main() -> None:
                     help="only the live graph, once per value per round, the values "
                     "interleaved (graph_sweep_<section>_<key>.json)")
     ap.add_argument("--repeat", type=int, default=3, help="--sweep: rounds (default 3)")
+    ap.add_argument("--size", metavar="WxH", default=None,
+                    help="frames of this size instead of 320x240, e.g. 640x480 (the size of "
+                    "NYUv2, TUM and Replica); writes graph_<W>x<H>.json / .png")
     args = ap.parse_args()
+    size = None
+    if args.size:
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+            assert len(size) == 2 and min(size) >= 16
+        except (ValueError, AssertionError):
+            raise SystemExit(f"--size {args.size}: expected WIDTHxHEIGHT, e.g. 640x480")
     from neurncd_ros import config
     from neurncd_ros.core.data.bag import FrameReader
     from neurncd_ros.synth import seeds
@@ -398,9 +420,11 @@ def main() -> None:
             raise SystemExit(f"--repeat {args.repeat}: at least 1 round")
     seed = seeds.TEST[0] if args.seed is None else args.seed
     odometry = args.poses == "odometry"
-    name = "graph_odometry" if odometry else "graph"
-    bag = make_bag(seed, args.frames, args.poses)
-    work = Path("/tmp/neurncd_graph") / f"run_s{seed}{'_odometry' if odometry else ''}"
+    name = ("graph_odometry" if odometry else "graph") + (
+        f"_{size[0]}x{size[1]}" if size else "")
+    bag = make_bag(seed, args.frames, args.poses, size)
+    work = Path("/tmp/neurncd_graph") / f"run_s{seed}{'_odometry' if odometry else ''}" \
+        f"{f'_{size[0]}x{size[1]}' if size else ''}"
     work.mkdir(parents=True, exist_ok=True)
     frames = {f.stamp_ns: f for f in FrameReader(bag, with_poses=not odometry)}
     params = (["mapper_node.pose_source:=odometry"] if odometry else []) + args.set
@@ -452,7 +476,8 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{name}.json").write_text(json.dumps(res, indent=1, sort_keys=True))
     picture(depth, labels, keyframes, res, RESULTS / f"{name}.png")
-    print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, 320x240 "
+    w, h = size or (320, 240)
+    print(f"\nlive graph, seed {seed}, {args.frames} frames at 30 Hz, {w}x{h} "
           f"(machine probe {res['machine_probe_ms']} ms):")
     for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "probe_scale",
               "label_rate_hz_at_probe_40ms", "latency_median_s_at_probe_40ms",

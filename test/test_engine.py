@@ -540,6 +540,30 @@ def test_discovery_waits_for_the_spec_and_labels_at_depth_size(cfg, backbone, fr
         st.label(bad)
 
 
+def test_discovery_labels_a_wide_view_at_its_work_width_and_returns_the_views_size(
+        cfg, backbone, frames):
+    """With discovery_node.work_width below the view's width, the view is segmented and
+    clustered at that width, and its labels come back at the view's own size: the same
+    classes as at full size, nearly everywhere."""
+    f = frames[10]
+    emb = backbone.embed(f.rgb, f.depth)
+    ent = uncertainty.entropy(emb)
+    view = ViewInput(f.stamp_ns, f.depth, f.intrinsics, emb, ent, f.rgb, pose=f.pose)
+    seen = []
+    recs = {}
+    for width in (0, 48):
+        st = DiscoveryStage(cfg, dataclasses.replace(cfg.discovery_node, work_width=width))
+        st.set_spec(backbone.spec)
+        process = st.discoverer.process
+        st.discoverer.process = lambda depth, *a, **k: (seen.append(depth.shape),
+                                                        process(depth, *a, **k))[1]
+        recs[width] = st.label(view).labels
+    assert seen == [f.depth.shape, (36, 48)]
+    assert recs[48].shape == f.depth.shape and recs[48].dtype == np.uint16
+    known = (recs[0] > 0) & (recs[0] < 100)
+    assert np.mean(recs[48][known] == recs[0][known]) > 0.9
+
+
 def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):
     clock = Clock()
     node_cfg = dataclasses.replace(cfg.discovery_node, spec_wait_s=5.0)

@@ -45,6 +45,14 @@ class DiscoveryNodeConfig:
                                    "row: a new bag, a camera restarted after a pause), when "
                                    "pairing restarts on the new timeline (0 = no limit)",
                                    lo=0.0, hi=1e9, unit="s")
+    work_width: int = param(320, "label views wider than this at this width (depth, "
+                            "embedding, entropy and colour scaled down; the labels scaled "
+                            "back up to the view's size, nearest): discovery's time grows "
+                            "with the pixels, and its defaults were tuned on 320x240 views. "
+                            "Tuning seeds 500-503 at 640x480, 150 frames: all-class mIoU "
+                            "78.8 at 320 against 76.5 at the full 640 (80.5 for the same "
+                            "scenes at 320x240), discovery about 3 times faster; 0 = at the "
+                            "view's own size", lo=0, hi=8192, unit="px")
     spec_wait_s: float = param(30.0, "how long views wait for the embedding spec before "
                                "they are dropped", lo=0.0, hi=3600.0, unit="s")
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
@@ -166,6 +174,13 @@ class DiscoveryStage:
             raise ValueError(f"entropy is {ent.shape} but the embedding is {emb.shape[:2]}")
         if not (np.all(np.isfinite(emb)) and np.all(np.isfinite(ent))):
             raise ValueError("rendered embedding or entropy has non-finite values")
+        full = depth.shape
+        intrinsics = view.intrinsics
+        if 0 < self.node_cfg.work_width < full[1]:
+            s = self.node_cfg.work_width / full[1]
+            size = (max(1, round(full[0] * s)), self.node_cfg.work_width)
+            depth = resize_to(depth, *size, cv2.INTER_NEAREST)  # no depths mixed at edges
+            intrinsics = intrinsics.scaled(size[1], size[0])
         h, w = depth.shape
         logits = resize_to(np.ascontiguousarray(emb[..., : spec.logit_channels], np.float32),
                            h, w)
@@ -180,8 +195,10 @@ class DiscoveryStage:
         if spec.feature_channels and self.cfg.modulation.feature_weight > 0:
             features = resize_to(np.ascontiguousarray(emb[..., spec.logit_channels:],
                                                       np.float32), h, w)
-        labels = self.discoverer.process(depth, view.intrinsics, logits, ent, view.stamp_ns,
+        labels = self.discoverer.process(depth, intrinsics, logits, ent, view.stamp_ns,
                                          rgb, features, view.pose)
+        if labels.shape != full:
+            labels = cv2.resize(labels, (full[1], full[0]), interpolation=cv2.INTER_NEAREST)
         self.health.count("labelled")
         self.health.set_state("running")
         return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)
