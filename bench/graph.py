@@ -81,7 +81,8 @@ RECORDER = textwrap.dedent("""
     from sensor_msgs.msg import Image
     from neurncd_ros.core import msgconv
     from neurncd_ros.core.topics import Topics
-    from neurncd_ros.nodes.common import Shutdown, output_qos, sensor_qos
+    from neurncd_ros.nodes.common import output_qos, sensor_qos
+    from neurncd_ros.nodes.process import Shutdown
     topics = Topics()
     out = sys.argv[1]
     shutdown = Shutdown().install()

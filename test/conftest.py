@@ -64,5 +64,5 @@ def pytest_unconfigure(config):
     # Tests kill nodes on purpose (SIGKILL): the Fast DDS shared memory those left behind
     # (128 MB each in /dev/shm, memory until reboot) goes with the session. Live
     # processes' segments are locked and never touched.
-    from neurncd_ros.nodes.common import remove_stale_shm
+    from neurncd_ros.nodes.process import remove_stale_shm
     remove_stale_shm(min_age_s=5.0)

@@ -316,7 +316,7 @@ def test_stale_fast_dds_shared_memory_is_removed_and_live_segments_are_kept(tmp_
     kept (what bringup and the test session do to /dev/shm)."""
     import fcntl
 
-    from neurncd_ros.nodes.common import remove_stale_shm
+    from neurncd_ros.nodes.process import remove_stale_shm
 
     def segment(name: str, age_s: float) -> Path:
         seg = tmp_path / name

@@ -14,6 +14,17 @@ import numpy as np
 
 from .camera import invert_pose, matrix_to_quat, pose_from_tq
 from .msgconv import MessageError, pose_to_matrix, stamp_to_ns
+from .params import param
+
+
+def max_jump_param() -> Any:
+    """The ``sync_max_jump_s`` parameter of a stage that pairs messages (:class:`StampSync`
+    ``max_jump_ns``): one definition for the embedding, mapper and discovery stages."""
+    return param(30.0, "a message stamped more than this ahead of the last frame paired is "
+                 "dropped as a bad stamp (a driver glitch), unless stamps keep jumping (10 "
+                 "messages in a row: a new bag, a camera restarted after a pause), when "
+                 "pairing restarts on the new timeline (0 = no limit)", lo=0.0, hi=1e9,
+                 unit="s")
 
 
 def nearest(times: np.ndarray, t: int) -> tuple[int, int]:

@@ -21,7 +21,7 @@ GIL), all with one parameter file:
   terminal's Ctrl-C reaches bringup, which stops them in order) with a
   parent-death signal, so they get SIGTERM even if bringup is killed. They start
   with SIGINT and SIGTERM blocked, and unblock them once their handlers are installed
-  (``Shutdown.install``), so a stop sent while a child is still starting is held until
+  (``process.Shutdown.install``), so a stop sent while a child is still starting is held until
   it can be handled instead of ending the child's interpreter with a traceback;
 - a parameter file that is not valid YAML or not valid for the schema is reported on
   one line naming the file, exit code 2 (as ``neurncd`` does);
@@ -41,9 +41,9 @@ import sys
 import threading
 import time
 
-from .common import (STOP_SIGNALS, ConfigError, Shutdown, diagnostics_status,
-                     ensure_dds_profile, exit_status, params_file_error, remove_stale_shm,
+from .common import (ConfigError, diagnostics_status, ensure_dds_profile, params_file_error,
                      share_file)
+from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
 NODES = ("embedding", "mapper", "discovery")
 PR_SET_PDEATHSIG = 1
@@ -252,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _clean_shm(min_age_s: float) -> None:
     """Free the shared memory of Fast DDS processes that died without removing it
-    (:func:`.common.remove_stale_shm`), saying so."""
+    (:func:`.process.remove_stale_shm`), saying so."""
     n, freed = remove_stale_shm(min_age_s=min_age_s)
     if n:
         print(f"bringup: removed {n} shared-memory segment(s) ({freed / 2**20:.0f} MB) that "

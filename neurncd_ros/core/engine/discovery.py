@@ -21,7 +21,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..params import param
-from ..sync import StampSync
+from ..sync import StampSync, max_jump_param
 from .health import Health, sync_reporter
 from .views import resize_to
 from .records import EmbeddingSpec, LabelsRecord, ViewRecord
@@ -39,12 +39,7 @@ class DiscoveryNodeConfig:
                                      unit="ms")
     sync_horizon_s: float = param(10.0, "how long a piece of a view waits for the rest",
                                   lo=0.01, hi=600.0, unit="s")
-    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
-                                   "frame paired is dropped as a bad stamp (a driver "
-                                   "glitch), unless stamps keep jumping (10 messages in a "
-                                   "row: a new bag, a camera restarted after a pause), when "
-                                   "pairing restarts on the new timeline (0 = no limit)",
-                                   lo=0.0, hi=1e9, unit="s")
+    sync_max_jump_s: float = max_jump_param()
     work_width: int = param(320, "label views wider than this at this width (depth, "
                             "embedding, entropy and colour scaled down; the labels scaled "
                             "back up to the view's size, nearest): discovery's time grows "

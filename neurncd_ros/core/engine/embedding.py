@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from ..params import param
-from ..sync import StampSync
+from ..sync import StampSync, max_jump_param
 from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec
 
@@ -38,12 +38,7 @@ class EmbeddingNodeConfig:
                                      lo=0.0, hi=1000.0, unit="ms")
     sync_horizon_s: float = param(1.0, "how long a colour or depth image waits for its "
                                   "partner", lo=0.01, hi=60.0, unit="s")
-    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
-                                   "frame paired is dropped as a bad stamp (a driver "
-                                   "glitch), unless stamps keep jumping (10 messages in a "
-                                   "row: a new bag, a camera restarted after a pause), when "
-                                   "pairing restarts on the new timeline (0 = no limit)",
-                                   lo=0.0, hi=1e9, unit="s")
+    sync_max_jump_s: float = max_jump_param()
     queue_size: int = param(5, "subscription depth; older frames are dropped", lo=1, hi=100)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind "
                                   "of problem", lo=0.0, hi=3600.0, unit="s")

@@ -64,7 +64,7 @@ import numpy as np
 from ..camera import Intrinsics, backproject, rays
 from ..frame import Frame
 from ..params import param
-from ..sync import StampSync
+from ..sync import StampSync, max_jump_param
 from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to,
@@ -181,12 +181,7 @@ class MapperNodeConfig:
     sync_horizon_s: float = param(2.0, "how long a colour, depth or pose waits for its "
                                   "embedding (the embedding stage skips most frames)",
                                   lo=0.01, hi=600.0, unit="s")
-    sync_max_jump_s: float = param(30.0, "a message stamped more than this ahead of the last "
-                                   "frame paired is dropped as a bad stamp (a driver "
-                                   "glitch), unless stamps keep jumping (10 messages in a "
-                                   "row: a new bag, a camera restarted after a pause), when "
-                                   "pairing restarts on the new timeline (0 = no limit)",
-                                   lo=0.0, hi=1e9, unit="s")
+    sync_max_jump_s: float = max_jump_param()
     queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
