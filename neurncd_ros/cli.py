@@ -324,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser("demo", help="make a synthetic scene and run the whole pipeline on "
-                       "it; writes overlays and metrics")
+                       "it; writes metrics, label images and overlays")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--seed", type=int, default=1001)
     p.add_argument("--frames", type=int, default=300)
