@@ -303,11 +303,21 @@ def strict_yaml_load(text: str) -> Any:
     return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
 
 
+ROS_BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def ros_builtin(name: str) -> bool:
+    """A parameter rclpy itself declares or reads (dotted name), not part of the schema."""
+    return name in ROS_BUILTIN_PARAMETERS or name.split(".")[0] == "qos_overrides"
+
+
 def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
     """The ``ros__parameters`` mapping of a ROS 2 parameter file (``/**`` or any node).
 
     A key given twice in one mapping is a ConfigError naming it (YAML would keep the
-    last value silently)."""
+    last value silently). rclpy's own parameters (:func:`ros_builtin`: ``use_sim_time``
+    for a bag replayed with /clock, ``qos_overrides``) are left to ROS: the same file
+    serves the nodes, bringup and ``neurncd``."""
     try:
         doc = strict_yaml_load(text)
     except DuplicateKeyError as err:
@@ -326,7 +336,7 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
         params = body["ros__parameters"] or {}
         if not isinstance(params, dict):
             raise ConfigError(f"{source}: {node_name}.ros__parameters must be a mapping")
-        merged = _merge(merged, params)
+        merged = _merge(merged, {k: v for k, v in params.items() if not ros_builtin(str(k))})
     return merged
 
 

@@ -104,6 +104,20 @@ def test_file_errors(tmp_path):
                               "are not allowed here")
 
 
+def test_rclpys_own_parameters_in_a_shared_file_are_left_to_ros(tmp_path):
+    """One parameter file serves the nodes, bringup and neurncd: use_sim_time (a bag
+    replayed with /clock) and qos_overrides are rclpy's and pass through, while the
+    schema's values in the same file apply and a typo is still an error."""
+    path = tmp_path / "sim.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n    qos_overrides:\n"
+                    "      /camera/depth/image_raw:\n        subscription:\n"
+                    "          depth: 5\n    run:\n      overlays: 2\n")
+    assert config.load(path).run.overlays == 2
+    path.write_text("/**:\n  ros__parameters:\n    use_sim_tme: true\n")
+    with pytest.raises(ConfigError, match="use_sim_tme: unknown section"):
+        config.load(path)
+
+
 def test_overrides_and_flat_names():
     cfg = config.load(SHIPPED, {"mapper.backend": "reference", "mapper_node.max_in_flight": 3})
     assert cfg.mapper.backend == "reference" and cfg.mapper_node.max_in_flight == 3

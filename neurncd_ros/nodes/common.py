@@ -80,14 +80,6 @@ def _ros_value(value: Any) -> Any:
     return list(value) if isinstance(value, (list, tuple)) else value
 
 
-ROS_BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
-
-
-def _ros_builtin(name: str) -> bool:
-    """Parameters rclpy itself declares or reads (not part of our schema)."""
-    return name in ROS_BUILTIN_PARAMETERS or name.startswith("qos_overrides.")
-
-
 def declare_config(node: Any) -> config_mod.Config:
     """Declare every schema parameter on ``node`` and return the validated config.
 
@@ -99,7 +91,8 @@ def declare_config(node: Any) -> config_mod.Config:
 
     defaults = config_mod.default().to_flat()
     overrides = dict(node.get_parameters_by_prefix(""))  # auto-declared from overrides
-    unknown = sorted(k for k in overrides if k not in defaults and not _ros_builtin(k))
+    unknown = sorted(k for k in overrides
+                     if k not in defaults and not config_mod.ros_builtin(k))
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown parameter; see `neurncd params` for the "
                           "list of parameters")
