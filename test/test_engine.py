@@ -779,9 +779,13 @@ def test_mapper_stage_drops_a_far_future_stamp_and_reports_a_frame_without_pose(
     assert st.health.counts["frames_paired"] == 10
     assert [j.frame.stamp_ns for j in jobs] == good
     assert [s for s in st.keyframe_stamps if s > good[3]], st.keyframe_stamps
-    # A frame whose pose never comes: reported once it expires.
+    # A frame whose pose never comes: reported when the next frame pairs (a live stream)...
     send(frames[10], good[-1] + sec, streams=("color", "depth", "embedding"))
-    clock.t += 2 * cfg.mapper_node.sync_horizon_s
-    send(frames[11], good[-1] + 2 * sec)
+    assert len(send(frames[11], good[-1] + 2 * sec)) == 1
     assert st.health.problems["unpaired"] == 1
     assert any("nothing came on pose" in t for t in logged), logged
+    # ... or when it expires (the stream stopped).
+    send(frames[12], good[-1] + 3 * sec, streams=("color", "depth", "embedding"))
+    clock.t += 2 * cfg.mapper_node.sync_horizon_s
+    st.offer("color", good[-1] + 4 * sec, frames[13].rgb)
+    assert st.health.problems["unpaired"] == 2

@@ -100,10 +100,11 @@ def test_stamps_that_keep_jumping_ahead_restart_the_pairing():
     assert unlimited.add("depth", 10**18, 1) == [(10**18, {"depth": 1})]
 
 
-def test_a_reference_message_that_expires_unpaired_names_the_missing_streams():
+def test_a_reference_message_given_up_unpaired_names_the_missing_streams():
     """After the streams have paired once, a frame whose pose never comes is reported
-    with the stream it waited for; before the first group (partners sent before the
-    node subscribed) nothing is reported."""
+    with the stream it waited for, when it expires and when a newer frame pairs first;
+    before the first group (partners sent before the node subscribed) nothing is
+    reported."""
     clock = Clock()
     seen = []
     s = sync.StampSync(("embedding", "color", "pose"), tolerance_ns=MS, horizon_s=1.0,
@@ -118,7 +119,14 @@ def test_a_reference_message_that_expires_unpaired_names_the_missing_streams():
     s.add("color", 200 * MS, "c2")                          # no pose for this frame
     clock.t = 4.0
     s.add("color", 300 * MS, "c3")
-    assert seen == [("embedding", "expired", 200 * MS, "pose")]
+    assert seen == [("embedding", "unpaired", 200 * MS, "pose")]
+    # In a continuous stream the frame is given up as soon as a newer one pairs.
+    seen.clear()
+    s.add("embedding", 300 * MS, "e3")                      # colour c3 came; no pose
+    for k in (4, 5):
+        for stream in ("embedding", "color", "pose"):
+            s.add(stream, k * 100 * MS, f"{stream}{k}")
+    assert seen == [("embedding", "unpaired", 300 * MS, "pose")]
 
 
 def test_unmatched_messages_expire_and_memory_is_bounded():

@@ -106,10 +106,11 @@ class StampSync:
     Every drop is counted by reason in :attr:`drops`; duplicates, out-of-order
     stamps, jumps and time resets are also passed to ``on_anomaly(stream, reason,
     stamp_ns, detail)`` (the stages report them as problems), and so is a message of
-    the reference stream that expires unpaired once the streams have paired before
-    (``detail`` names the streams that had no message near its stamp: a frame whose
-    pose never came is reported, not only counted; before the first group, partners
-    sent before the node subscribed are expected to be missing and are not);
+    the reference stream that is given up unpaired (``unpaired``: it expired, or a newer
+    one paired first) once the streams have paired before (``detail`` names the streams
+    that had no message near its stamp: a frame whose pose never came is reported, not
+    only counted; before the first group, partners sent before the node subscribed are
+    expected to be missing and are not);
     :meth:`starved` names streams that do not arrive while others do (a wrong topic
     name or stamps that never agree), which a node reports in a warning.
     """
@@ -186,7 +187,7 @@ class StampSync:
             if now - e[1] > self.horizon_s and self.groups:
                 missing = self._missing(e[0])
                 if missing:
-                    self._anomaly(ref, "expired", e[0], ", ".join(missing))
+                    self._anomaly(ref, "unpaired", e[0], ", ".join(missing))
         for s, q in self._pending.items():
             keep = [e for e in q if now - e[1] <= self.horizon_s]
             if len(keep) != len(q):
@@ -252,6 +253,11 @@ class StampSync:
                     break
                 picked[s] = j
             else:
+                if self.groups:  # older frames of the reference stream, given up unpaired
+                    for old in self._pending[ref_name][:i]:
+                        missing = self._missing(old[0])
+                        if missing:
+                            self._anomaly(ref_name, "unpaired", old[0], ", ".join(missing))
                 group = {ref_name: ref_value}
                 # The group and everything older in each stream can never pair again.
                 for s, j in picked.items():

@@ -157,15 +157,14 @@ def sync_reporter(health, names: dict[str, str] | None = None):
              "jump": "{n}: stamp {s} is {d} ahead of the last frame paired (more than "
                      "sync_max_jump_s): dropped as a bad stamp; if stamps keep jumping "
                      "(a new bag, a restarted camera), pairing restarts",
-             "expired": "{n}: the frame stamped {s} expired unpaired: nothing came on {d} "
-                        "within the sync tolerance: dropped",
+             "unpaired": "{n}: the frame stamped {s} is given up unpaired: nothing came "
+                         "on {d} within the sync tolerance: dropped",
              "time_reset": "{n}: stamps went back or jumped ahead (bag loop, new bag or "
                            "clock reset): pairing restarts"}
 
     def report(stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         name = (names or {}).get(stream, stream)
-        kind = "unpaired" if reason == "expired" else reason
-        health.problem(kind, texts[reason].format(s=stamp_ns, n=name, d=detail))
+        health.problem(reason, texts[reason].format(s=stamp_ns, n=name, d=detail))
     return report
 
 
