@@ -113,17 +113,34 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .core.data.bag import FrameReader
 
     cfg = load_config(args)
+    import numpy as np
+
+    from .core.data.folder_common import PLAUSIBLE_MEDIAN_DEPTH_M
+
     reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync)
     n, with_gt, first = 0, 0, None
+    medians, valid = [], []
     for frame in reader:
         first = first or frame
         n += 1
         with_gt += frame.semantic is not None
+        d = frame.depth[np.isfinite(frame.depth) & (frame.depth > 0)]
+        valid.append(d.size / frame.depth.size)
+        if d.size:
+            medians.append(float(np.median(d)))
     print(f"{args.bag}: {n} synchronised frames")
     if first is not None:
         i = first.intrinsics
         print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f}, semantic ground "
               f"truth in {with_gt} of {n} frames")
+        # A wrong depth scale shows here first: an indoor scene is metres away.
+        med = float(np.median(medians)) if medians else float("nan")
+        print(f"  depth: median {med:.2f} m (median over frames of each frame's median), "
+              f"{100 * float(np.median(valid)):.0f} % of pixels measured (median)")
+        lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+        if not lo <= med <= hi:
+            print(f"  warning: a median depth of {med:.2f} m is no indoor scene ({lo:g}-{hi:g} "
+                  "m): check the depth scale the bag was made with")
     print("  " + reader.summary())
     return 0
 

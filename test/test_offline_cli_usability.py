@@ -103,6 +103,27 @@ def test_run_with_ground_truth_is_flagged_evaluated(tmp_path):
     assert len(list((out / "labels").glob("*.png"))) == result["labelled"]
 
 
+def test_info_gives_the_depth_and_warns_when_it_is_no_indoor_scene(tmp_path):
+    """`neurncd info` is where a user checks a bag: it gives the median depth, and a bag
+    whose depth was written at the wrong scale (here five times too far, as ICL-NUIM read
+    as millimetres) is named as such."""
+    import dataclasses
+
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    frames = list(synth.generate(1002, 3, synth.SynthConfig(width=80, height=60)))
+    good, bad = tmp_path / "good.mcap", tmp_path / "bad.mcap"
+    write_bag(good, frames)
+    write_bag(bad, [dataclasses.replace(f, depth=f.depth * 5) for f in frames])
+    r = neurncd("info", good, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    med = float(np.median([np.median(f.depth[f.depth > 0]) for f in frames]))
+    assert f"depth: median {med:.2f} m" in r.stdout and "warning" not in r.stdout
+    r = neurncd("info", bad, timeout=120)
+    assert r.returncode == 0 and "is no indoor scene" in r.stdout, r.stdout
+
+
 def test_run_help_states_the_output_layout():
     r = neurncd("run", "--help", timeout=120)
     assert r.returncode == 0
