@@ -181,13 +181,20 @@ class StampSync:
         return [s for s in self.streams[1:]
                 if not any(abs(e[0] - stamp_ns) <= self.tolerance_ns for e in self._pending[s])]
 
+    def _report_unpaired(self, entries) -> None:
+        """Report the reference stream's ``entries`` given up unpaired (expired, or older
+        than a group just made), naming the streams that had nothing near each; only once
+        the streams have paired before (earlier partners predate the subscription)."""
+        if not self.groups:
+            return
+        for stamp, _, _ in entries:
+            missing = self._missing(stamp)
+            if missing:
+                self._anomaly(self.streams[0], "unpaired", stamp, ", ".join(missing))
+
     def _expire(self, now: float) -> None:
-        ref = self.streams[0]
-        for e in self._pending[ref]:
-            if now - e[1] > self.horizon_s and self.groups:
-                missing = self._missing(e[0])
-                if missing:
-                    self._anomaly(ref, "unpaired", e[0], ", ".join(missing))
+        self._report_unpaired([e for e in self._pending[self.streams[0]]
+                               if now - e[1] > self.horizon_s])
         for s, q in self._pending.items():
             keep = [e for e in q if now - e[1] <= self.horizon_s]
             if len(keep) != len(q):
@@ -253,11 +260,7 @@ class StampSync:
                     break
                 picked[s] = j
             else:
-                if self.groups:  # older frames of the reference stream, given up unpaired
-                    for old in self._pending[ref_name][:i]:
-                        missing = self._missing(old[0])
-                        if missing:
-                            self._anomaly(ref_name, "unpaired", old[0], ", ".join(missing))
+                self._report_unpaired(self._pending[ref_name][:i])
                 group = {ref_name: ref_value}
                 # The group and everything older in each stream can never pair again.
                 for s, j in picked.items():

@@ -83,18 +83,26 @@ class Health:
             self.gauges[key] = value
 
     # ------------------------------------------------------------ problems
+    def _due(self, key: str, now: float) -> int | None:
+        """The throttle (caller holds the lock): None if ``key`` was logged less than
+        throttle_s ago (this one is counted as unreported), else how many went unreported
+        since its last line."""
+        last = self._last_report.get(key)
+        if last is not None and now - last < self.throttle_s:
+            self._unreported[key] += 1
+            return None
+        self._last_report[key] = now
+        return self._unreported.pop(key, 0)
+
     def problem(self, kind: str, message: str, level: int = WARN) -> None:
         """A problem of ``kind``: counted, logged at most once per throttle_s per kind."""
         now = self._clock()
         with self._lock:
             self.problems[kind] += 1
             self._last_problem_at = now
-            last = self._last_report.get(kind)
-            if last is not None and now - last < self.throttle_s:
-                self._unreported[kind] += 1
-                return
-            more = self._unreported.pop(kind, 0)
-            self._last_report[kind] = now
+            more = self._due(kind, now)
+        if more is None:
+            return
         suffix = f" ({more} more of this kind since the last report)" if more else ""
         self._log(level, f"{message}{suffix}")
 
@@ -105,11 +113,9 @@ class Health:
         now = self._clock()
         with self._lock:
             self.counts[f"note.{kind}"] += 1
-            last = self._last_report.get(f"note.{kind}")
-            if last is not None and now - last < self.throttle_s:
-                return
-            self._last_report[f"note.{kind}"] = now
-        self._log(OK, message)
+            due = self._due(f"note.{kind}", now) is not None
+        if due:
+            self._log(OK, message)
 
     def fail(self, kind: str, message: str) -> None:
         """An error that stops the stage's output: state ``error``, logged, reported."""
