@@ -112,11 +112,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
 def cmd_info(args: argparse.Namespace) -> int:
     from .core.data.bag import FrameReader
 
-    cfg = load_config(args)
     import numpy as np
 
-    from .core.data.folder_common import PLAUSIBLE_MEDIAN_DEPTH_M
+    from .core.data.folder_common import PLAUSIBLE_MEDIAN_DEPTH_M, measured_depth
 
+    cfg = load_config(args)
     reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync)
     n, with_gt, first = 0, 0, None
     medians, valid = [], []
@@ -124,10 +124,10 @@ def cmd_info(args: argparse.Namespace) -> int:
         first = first or frame
         n += 1
         with_gt += frame.semantic is not None
-        d = frame.depth[np.isfinite(frame.depth) & (frame.depth > 0)]
-        valid.append(d.size / frame.depth.size)
-        if d.size:
-            medians.append(float(np.median(d)))
+        med, share = measured_depth(frame.depth)
+        valid.append(share)
+        if med is not None:
+            medians.append(med)
     print(f"{args.bag}: {n} synchronised frames")
     if first is not None:
         i = first.intrinsics

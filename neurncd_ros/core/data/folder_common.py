@@ -171,6 +171,14 @@ COMMON_DEPTH_SCALES = {1000.0: "millimetres: Kinect/NYU, Redwood, Replica",
                        5000.0: "1/5000 m: TUM RGB-D, ICL-NUIM"}
 
 
+def measured_depth(depth: np.ndarray) -> tuple[float | None, float]:
+    """(median of the measured depths, None if there is none; the share of pixels
+    measured): what tells whether a depth scale makes an indoor scene
+    (:data:`PLAUSIBLE_MEDIAN_DEPTH_M`)."""
+    valid = depth[np.isfinite(depth) & (depth > 0)]
+    return (float(np.median(valid)) if valid.size else None), valid.size / depth.size
+
+
 class DepthScaleCheck:
     """Refuses a folder whose depth, decoded with the folder kind's default scale, is
     not an indoor scene while another common scale makes it one.
@@ -194,11 +202,10 @@ class DepthScaleCheck:
         """Check one decoded depth image (metres) until a frame with depth is seen."""
         if not self.active:
             return
-        valid = depth[np.isfinite(depth) & (depth > 0)]
-        if valid.size < 0.05 * depth.size:
+        med, share = measured_depth(depth)
+        if share < 0.05:
             return  # too little depth to judge: try the next frame
         self.active = False
-        med = float(np.median(valid))
         lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
         if lo <= med <= hi:
             return
