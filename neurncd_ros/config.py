@@ -303,6 +303,17 @@ def strict_yaml_load(text: str) -> Any:
     return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
 
 
+def read_yaml(text: str, source: str = "<yaml>") -> Any:
+    """A YAML document read as every configuration file is (:func:`strict_yaml_load`); a
+    ConfigError naming ``source`` on one line if it is not valid YAML or gives a key twice."""
+    try:
+        return strict_yaml_load(text)
+    except DuplicateKeyError as err:
+        raise ConfigError(f"{source}: {err}") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{source}: not valid YAML: {yaml_problem(err)}") from None
+
+
 ROS_BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 
@@ -318,12 +329,7 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
     last value silently). rclpy's own parameters (:func:`ros_builtin`: ``use_sim_time``
     for a bag replayed with /clock, ``qos_overrides``) are left to ROS: the same file
     serves the nodes, bringup and ``neurncd``."""
-    try:
-        doc = strict_yaml_load(text)
-    except DuplicateKeyError as err:
-        raise ConfigError(f"{source}: {err}") from None
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{source}: not valid YAML: {yaml_problem(err)}") from None
+    doc = read_yaml(text, source)
     if doc is None:
         return {}
     if not isinstance(doc, dict):

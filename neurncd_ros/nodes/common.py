@@ -117,23 +117,15 @@ def params_file_error(path: str | Path) -> str | None:
     """What is wrong with a parameter file that cannot be read as YAML (one line naming the
     file), or None. rcl's own message names neither the line's problem nor cleanly the file
     (``Couldn't parse params file: '--params-file x'. Error: Error parsing a event ...``).
-    The file is read as the configuration reads it (:func:`..config.strict_yaml_load`: a key
-    given twice is refused too, which rcl would take silently, the last value winning)."""
-    import yaml
+    The file is read as the configuration reads it (:func:`..config.read_config_text`,
+    :func:`..config.read_yaml`: a key given twice is refused too, which rcl would take
+    silently, the last value winning)."""
+    from ..config import read_config_text, read_yaml
 
-    from ..config import DuplicateKeyError, strict_yaml_load, yaml_problem
-
-    path = Path(path)
-    if not path.is_file():
-        return f"parameter file {path} does not exist"
     try:
-        strict_yaml_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as err:
-        return f"parameter file {path} cannot be read: {err}"
-    except DuplicateKeyError as err:
-        return f"{path}: {err}"
-    except yaml.YAMLError as err:
-        return f"{path}: not valid YAML: {yaml_problem(err)}"
+        read_yaml(read_config_text(Path(path)), str(path))
+    except ConfigError as err:
+        return str(err)
     return None
 
 
