@@ -200,16 +200,35 @@ def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, 
 
 
 @pytest.mark.parametrize("args, expect", [
-    (["-p", "mapper.backend:=gpu"], "mapper.backend: 'gpu' is not allowed; allowed: one of"),
+    (["-p", "mapper.backend:=gpu"],
+     "mapper.backend: 'gpu' is not allowed; allowed: one of"),
     (["-p", "mapper.no_such:=1"], "mapper.no_such: unknown parameter"),
+    # A section written as a value, in a file: rcl merges files and overrides before the
+    # node sees a value, so the node names the file itself.
+    (["--params-file", "{ok}", "--params-file", "{bad}"], "mapper: unknown parameter"),
+    (["--params-file", "{bad_type}"], "mapper.lambda_embedding"),
 ])
-def test_bad_parameter_stops_node_with_clear_message(args, expect):
+def test_bad_parameter_stops_node_with_clear_message(args, expect, tmp_path):
+    files = {"ok": "/**:\n  ros__parameters:\n    mcl:\n      inflation: 2.0\n",
+             "bad": "/**:\n  ros__parameters:\n    mapper: 3\n",
+             "bad_type": "mapper:\n  ros__parameters:\n    mapper:\n"
+                         "      lambda_embedding: fast\n"}
+    paths = {}
+    for key, text in files.items():
+        paths[key] = tmp_path / f"{key}.yaml"
+        paths[key].write_text(text)
+    args = [a.format(**paths) for a in args]
     r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args", *args],
                        env=ros_env(rosutil.domain(6)), capture_output=True, text=True,
                        timeout=120, cwd=REPO)
     assert r.returncode == 2, r.stdout + r.stderr
     assert expect in r.stderr
     assert "Traceback" not in r.stderr
+    if "-p" in args:
+        assert "(given with -p)" in r.stderr
+    else:  # the file holding the bad value is named, not the good one
+        bad = args[-1]
+        assert f"(given in params file {bad})" in r.stderr, r.stderr
 
 
 def test_node_health_logs_every_severity_from_one_logger(ros_node):

@@ -134,6 +134,41 @@ def params_files(ros_args: list[str]) -> list[str]:
     return [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == "--params-file"]
 
 
+def _flat_keys(values: Any, prefix: str = "") -> set[str]:
+    """Every dotted key of a nested mapping, sections included (``mapper``, ``mapper.lr``)."""
+    keys: set[str] = set()
+    for key, value in (values.items() if isinstance(values, dict) else ()):
+        name = f"{prefix}{key}"
+        keys.add(name)
+        keys |= _flat_keys(value, name + ".")
+    return keys
+
+
+def parameter_origin(message: str, ros_args: list[str]) -> str:
+    """Where the parameter a ConfigError ``message`` names (its text up to the first ':')
+    was given: ``" (given with -p)"``, ``" (given in params file F)"`` or ``""``. rcl
+    merges the files and overrides before the node sees a value, so without this a wrong
+    value in a file of many parameters (``mapper: 3`` in place of a section) is named
+    without the file it is in."""
+    from ..config import parameters_from_yaml, read_config_text
+
+    key = message.split(":", 1)[0].strip()
+    if not key or " " in key:
+        return ""
+    for i, arg in enumerate(ros_args[:-1]):
+        if arg in ("-p", "--param") and ros_args[i + 1].split(":=", 1)[0] == key:
+            return " (given with -p)"
+    found = []
+    for path in params_files(ros_args):
+        try:
+            keys = _flat_keys(parameters_from_yaml(read_config_text(Path(path)), path))
+        except ConfigError:
+            continue
+        if key in keys:
+            found.append(path)
+    return f" (given in params file {', '.join(found)})" if found else ""
+
+
 def ros_args_error(err: Exception) -> str:
     """rcl's refusal of the ROS arguments on one line, without its source locations."""
     text = str(err)
@@ -244,7 +279,8 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
                 print(f"{name}: {shutdown.signal_name}: shutting down", file=sys.stderr)
         code = int(getattr(node, "exit_code", 0) or 0)
     except ConfigError as err:
-        print(f"{name}: configuration error: {err}", file=sys.stderr)
+        print(f"{name}: configuration error: {err}{parameter_origin(str(err), ros_args)}",
+              file=sys.stderr)
         code = 2
     except ValueError as err:  # rclpy refusing a parameter override (e.g. `key: []`)
         print(f"{name}: error: {err}", file=sys.stderr)
