@@ -105,10 +105,22 @@ def backproject(depth: np.ndarray, intr: Intrinsics, pose: np.ndarray | None = N
     mask = np.isfinite(depth) & (depth > 0)
     v, u = np.nonzero(mask)
     z = depth[mask].astype(np.float64)
-    pts = camera_directions(intr, u, v) * z[:, None]
-    if pose is not None:
-        pose = check_pose(pose)
-        pts = pts @ pose[:3, :3].T + pose[:3, 3]
+    # Column by column into one (N, 3) array (several times faster than stacking the
+    # directions and an (N, 3) matmul; the same float64 values).
+    cam = np.empty((len(z), 3))
+    np.multiply((u - intr.cx) / intr.fx, z, out=cam[:, 0])
+    np.multiply((v - intr.cy) / intr.fy, z, out=cam[:, 1])
+    cam[:, 2] = z
+    if pose is None:
+        return cam, mask
+    pose = check_pose(pose)
+    pts = np.empty_like(cam)
+    for i in range(3):
+        r = pose[i]
+        np.multiply(cam[:, 0], r[0], out=pts[:, i])
+        pts[:, i] += cam[:, 1] * r[1]
+        pts[:, i] += cam[:, 2] * r[2]
+        pts[:, i] += r[3]
     return pts, mask
 
 
