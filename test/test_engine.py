@@ -116,6 +116,31 @@ def test_embedding_stage_pairs_keeps_the_newest_and_gates_by_stamp(backbone, fra
         st.embed(stamp, rgb[:, :40], depth)
 
 
+@pytest.mark.parametrize("size, published", [((640, 480), (240, 320)),
+                                               ((848, 480), (181, 320)),
+                                               ((96, 72), (72, 96))])
+def test_embedding_is_published_at_the_backbones_resolution(backbone, frames, size, published):
+    """By default (output_scale 0) a frame wider than the network's input gets its embedding
+    at the network's width, the frame's aspect kept: what the network saw, a quarter of the
+    bytes of a 640x480 frame's. The values are the full-size embedding's, sampled there."""
+    import cv2
+
+    f = frames[0]
+    rgb = cv2.resize(f.rgb, size, interpolation=cv2.INTER_LINEAR)
+    depth = cv2.resize(f.depth, size, interpolation=cv2.INTER_NEAREST)
+    st = EmbeddingStage(backbone, EmbeddingNodeConfig())
+    assert st.input_width == 320
+    emb = st.embed(f.stamp_ns, rgb, depth).embedding
+    assert emb.shape == (*published, 9) and emb.dtype == np.float32
+    full = EmbeddingStage(backbone, EmbeddingNodeConfig(output_scale=1.0)).embed(
+        f.stamp_ns, rgb, depth).embedding
+    assert full.shape == (size[1], size[0], 9)
+    back = np.stack([cv2.resize(full[..., c], (published[1], published[0]),
+                                interpolation=cv2.INTER_AREA) for c in range(9)], -1)
+    assert np.mean(np.argmax(back, -1) == np.argmax(emb, -1)) > 0.97
+    assert np.median(np.abs(back - emb)) < 0.1 * np.median(np.abs(full))
+
+
 # ------------------------------------------------------------------ mapper
 
 def _stage(cfg, **node) -> MapperStage:

@@ -169,6 +169,23 @@ def test_tf_without_tf2_msgs_is_a_clear_error_and_auto_skips_it():
     assert st.mode is None
 
 
+@pytest.mark.parametrize("tf_available, why", [
+    (False, "/tf cannot be read here (no tf2_msgs"),
+    (True, "no /tf link from world to camera"),
+])
+def test_auto_says_why_it_chose_odometry(walk, tf_available, why):
+    """A user whose poses are on /tf learns why the mapper tracks the camera itself."""
+    clock, lines = Clock(), []
+    st = _stage("auto", clock, tf_available=tf_available,
+                log=lambda level, text: lines.append(text))
+    _feed_images(st, walk[:3])
+    clock.t = 2.0
+    _feed_images(st, walk[3:6])
+    assert st.mode == "odometry"
+    note = [t for t in lines if t.startswith("pose source: odometry")]
+    assert note and "no pose on /camera/pose within 1 s" in note[0] and why in note[0], lines
+
+
 @pytest.mark.ros
 def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
     """A camera with no pose topic and no /tf: the mapper chooses odometry (auto), publishes

@@ -129,6 +129,37 @@ def test_a_reference_message_given_up_unpaired_names_the_missing_streams():
     assert seen == [("embedding", "unpaired", 300 * MS, "pose")]
 
 
+def test_a_reference_message_after_its_partners_expired_is_reported_late():
+    """An embedding that comes after its colour and pose waited the horizon and expired
+    (a backbone seconds behind) is reported as late, with how far behind, not as a frame
+    whose partners never came; a partner that never came is still named as missing."""
+    clock = Clock()
+    seen = []
+    s = sync.StampSync(("embedding", "color", "pose"), tolerance_ns=MS, horizon_s=1.0,
+                       clock=clock, on_anomaly=lambda *a: seen.append(a))
+    for stream in ("embedding", "color", "pose"):
+        s.add(stream, 0, stream)                            # one group: reports are on
+    s.add("color", 100 * MS, "c1")
+    s.add("pose", 100 * MS, "p1")
+    clock.t = 2.5                                            # they expire meanwhile
+    assert s.add("embedding", 100 * MS, "e1") == []
+    clock.t = 4.0
+    s.add("color", 200 * MS, "c2")                           # e1 expires in its turn
+    assert seen == [("embedding", "late", 100 * MS, "color, pose (2.5 s before it)")]
+    assert s.drops["expired"] == 3
+    # Colour came and expired, the pose never came: the missing pose is what is named.
+    seen.clear()
+    s.add("color", 300 * MS, "c3")
+    clock.t = 6.0
+    s.add("embedding", 300 * MS, "e3")
+    clock.t = 8.0
+    s.add("color", 400 * MS, "c4")
+    assert seen == [("embedding", "unpaired", 300 * MS, "pose")]
+    # After a reset (a new bag) the old expiries are forgotten.
+    s.reset()
+    assert all(not q for q in s._expired.values())
+
+
 def test_unmatched_messages_expire_and_memory_is_bounded():
     clock = Clock()
     s = sync.StampSync(("depth", "embedding", "color"), tolerance_ns=MS, horizon_s=1.0,

@@ -110,7 +110,9 @@ class StampSync:
     one paired first) once the streams have paired before (``detail`` names the streams
     that had no message near its stamp: a frame whose pose never came is reported, not
     only counted; before the first group, partners sent before the node subscribed are
-    expected to be missing and are not);
+    expected to be missing and are not), or ``late`` when its partners did come but had
+    expired before it arrived (``detail``: those streams and how long before it they
+    came; the stage upstream is behind by more than ``horizon_s``);
     :meth:`starved` names streams that do not arrive while others do (a wrong topic
     name or stamps that never agree), which a node reports in a warning.
     """
@@ -142,6 +144,11 @@ class StampSync:
         self._backwards = 0
         self._jumps = 0
         self._since_group = collections.Counter()
+        # Per partner stream, the (stamp, arrival) of its recent messages that expired: a
+        # reference message arriving after its partners expired is reported as late, not
+        # as one whose partners never came.
+        self._expired = {s: collections.deque(maxlen=max(1, self.capacity))
+                         for s in self.streams[1:]}
         self._on_anomaly = on_anomaly
 
     def _anomaly(self, stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
@@ -175,6 +182,8 @@ class StampSync:
         self._backwards = 0
         self._jumps = 0
         self._since_group.clear()
+        for q in self._expired.values():
+            q.clear()
 
     def _missing(self, stamp_ns: int) -> list[str]:
         """The streams with no pending message within the tolerance of ``stamp_ns``."""
@@ -187,10 +196,19 @@ class StampSync:
         the streams have paired before (earlier partners predate the subscription)."""
         if not self.groups:
             return
-        for stamp, _, _ in entries:
+        for stamp, arrival, _ in entries:
             missing = self._missing(stamp)
-            if missing:
-                self._anomaly(self.streams[0], "unpaired", stamp, ", ".join(missing))
+            late = {}  # stream -> seconds its message came before this one and expired
+            for s in missing:
+                near = [t for st, t in self._expired[s] if abs(st - stamp) <= self.tolerance_ns]
+                if near:
+                    late[s] = arrival - max(near)
+            absent = [s for s in missing if s not in late]
+            if absent:
+                self._anomaly(self.streams[0], "unpaired", stamp, ", ".join(absent))
+            elif late:
+                self._anomaly(self.streams[0], "late", stamp,
+                              f"{', '.join(late)} ({max(late.values()):.1f} s before it)")
 
     def _expire(self, now: float) -> None:
         self._report_unpaired([e for e in self._pending[self.streams[0]]
@@ -198,6 +216,9 @@ class StampSync:
         for s, q in self._pending.items():
             keep = [e for e in q if now - e[1] <= self.horizon_s]
             if len(keep) != len(q):
+                if s in self._expired:
+                    self._expired[s].extend((e[0], e[1]) for e in q
+                                            if now - e[1] > self.horizon_s)
                 self._drop(s, "expired", len(q) - len(keep))
                 self._since_group[(s, "expired")] += len(q) - len(keep)
                 q[:] = keep

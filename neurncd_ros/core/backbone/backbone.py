@@ -250,28 +250,35 @@ class Backbone:
         return EmbeddingSpec(tuple(int(i) for i in self.channel_to_id), self.feature_channels,
                              self.kind)
 
-    def embed(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def embed(self, rgb: np.ndarray, depth: np.ndarray,
+              size: tuple[int, int] | None = None) -> np.ndarray:
         """One frame -> (H, W, spec.channels) float32 semantic embedding: the logits, then
-        the penultimate features when ``backbone.features`` is on."""
-        return self.predict_batch([rgb], [depth], features=self.feature_channels > 0)[0]
+        the penultimate features when ``backbone.features`` is on. ``size`` (h, w): the
+        output's size instead of the frame's (the network's output interpolated once)."""
+        return self.predict_batch([rgb], [depth], features=self.feature_channels > 0,
+                                  sizes=None if size is None else [size])[0]
 
     def predict(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """One frame -> (H, W, S) float32 logits at the frame's own size."""
         return self.predict_batch([rgb], [depth])[0]
 
     def predict_batch(self, rgbs: Sequence[np.ndarray], depths: Sequence[np.ndarray],
-                      features: bool = False) -> list[np.ndarray]:
+                      features: bool = False,
+                      sizes: Sequence[tuple[int, int]] | None = None) -> list[np.ndarray]:
         """Several frames (any sizes) -> list of (H_i, W_i, S) float32 logits
         (``features``: (H_i, W_i, S + feature_channels), the features after them).
 
         Frames are resized to the model input size, run as one batch, and the
-        outputs resized back to each frame's size.
+        outputs resized back to each frame's size (or to ``sizes``, (h, w) per frame).
         """
         if len(rgbs) != len(depths):
             raise ValueError(f"got {len(rgbs)} rgb images but {len(depths)} depth images")
         if not rgbs:
             return []
-        sizes = [np.asarray(d).shape for d in depths]
+        if sizes is None:
+            sizes = [np.asarray(d).shape for d in depths]
+        elif len(sizes) != len(rgbs):
+            raise ValueError(f"got {len(sizes)} output sizes for {len(rgbs)} frames")
         with torch.inference_mode():
             x_rgb, x_depth = self.inputs(rgbs, depths)
             if features:

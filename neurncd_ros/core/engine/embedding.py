@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import threading
 
-import cv2
 import numpy as np
 
 from ..params import param
@@ -31,9 +30,13 @@ class EmbeddingNodeConfig:
     max_rate_hz: float = param(10.0, "embed at most this many frames per second of stamp "
                                "time (0 = every frame): the mapper needs only keyframes and "
                                "the views it renders", lo=0.0, hi=1000.0, unit="Hz")
-    output_scale: float = param(1.0, "published embedding size relative to the frame "
-                                "(the mapper reads it at any size of the same aspect; 0.5 "
-                                "quarters the DDS traffic)", lo=0.1, hi=1.0)
+    output_scale: float = param(0.0, "published embedding size relative to the frame (the "
+                                "mapper reads it at any size of the same aspect). 0: as wide "
+                                "as the backbone's input (at most the frame), the resolution "
+                                "the network saw, so nothing is lost: a 640x480 frame's "
+                                "embedding is published at 320x240 with the default backbone, "
+                                "a quarter of the DDS traffic and of the mapper's keyframe "
+                                "memory; 1: the frame's size", lo=0.0, hi=1.0)
     sync_tolerance_ms: float = param(5.0, "max stamp difference to pair colour and depth",
                                      lo=0.0, hi=1000.0, unit="ms")
     sync_horizon_s: float = param(1.0, "how long a colour or depth image waits for its "
@@ -57,6 +60,8 @@ class EmbeddingStage:
                               cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size),
                               on_anomaly=sync_reporter(self.health),
                               max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
+        # The width the network runs at (0 = unknown: a backbone without ``input_size``).
+        self.input_width = int((getattr(backbone, "input_size", None) or (0, 0))[0])
         self._lock = threading.Lock()
         self._latest: tuple[int, np.ndarray, np.ndarray] | None = None
         self._last_stamp: int | None = None
@@ -110,14 +115,16 @@ class EmbeddingStage:
             raise ValueError(f"colour is {rgb.shape[1]}x{rgb.shape[0]} but depth is "
                              f"{depth.shape[1]}x{depth.shape[0]}: depth must be registered "
                              "to colour")
-        emb = self.backbone.embed(rgb, depth)
+        h, w = depth.shape
         s = self.cfg.output_scale
-        if s < 1.0:
-            h, w = depth.shape
-            emb = cv2.resize(emb, (max(1, round(w * s)), max(1, round(h * s))),
-                             interpolation=cv2.INTER_AREA)
-            if emb.ndim == 2:
-                emb = emb[:, :, None]
+        if s == 0.0:  # at the backbone's resolution, at most the frame's
+            s = self.input_width / w if 0 < self.input_width < w else 1.0
+        # The network's output interpolated once, to the published size (a resize of the
+        # frame-size embedding after it would cost a second pass, and OpenCV's area
+        # resize refuses more than 4 channels at a scale that is no integer ratio).
+        emb = (self.backbone.embed(rgb, depth) if s == 1.0 else
+               self.backbone.embed(rgb, depth, size=(max(1, round(h * s)),
+                                                     max(1, round(w * s)))))
         self._last_stamp = int(stamp_ns)
         self.health.count("embedded")
         self.health.set_state("running")

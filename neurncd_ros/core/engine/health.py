@@ -165,12 +165,23 @@ def sync_reporter(health, names: dict[str, str] | None = None):
                      "(a new bag, a restarted camera), pairing restarts",
              "unpaired": "{n}: the frame stamped {s} is given up unpaired: nothing came "
                          "on {d} within the sync tolerance: dropped",
+             "late": "{n}: the frame stamped {s} came after its {d} had waited the sync "
+                     "horizon and been given up: dropped; the stage upstream is that far "
+                     "behind (a slow machine, large images): raise sync_horizon_s or "
+                     "lower the load (smaller images, a lower rate)",
              "time_reset": "{n}: stamps went back or jumped ahead (bag loop, new bag or "
                            "clock reset): pairing restarts"}
 
     def report(stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         name = (names or {}).get(stream, stream)
-        health.problem(reason, texts[reason].format(s=stamp_ns, n=name, d=detail))
+        text = texts[reason].format(s=stamp_ns, n=name, d=detail)
+        if reason == "unpaired" and any(k in detail for k in ("color", "depth")):
+            # The usual cause of an image stream that keeps missing: a publisher with
+            # default Fast DDS loses images over 1 MB before any subscriber sees them.
+            text += ("; if this repeats, large images may be lost by their publisher: "
+                     "start the camera driver with the shipped Fast DDS profile too "
+                     "(README, 'Large images and Fast DDS')")
+        health.problem(reason, text)
     return report
 
 

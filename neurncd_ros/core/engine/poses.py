@@ -115,7 +115,14 @@ class PoseStage:
             self._wanted.clear()
             self._early.clear()
         self.health.gauge("pose_source", mode)
-        self.health.note("pose_source", f"pose source: {mode} (pose_source auto)")
+        why = ""
+        if mode == "odometry":
+            why = (f": no pose on {self.topics.pose} within {self.cfg.pose_auto_wait_s:g} s"
+                   + (f", and no /tf link from {self.topics.world_frame} to "
+                      f"{self.topics.camera_frame}" if self.tf_available else
+                      ", and /tf cannot be read here (no tf2_msgs message package: there "
+                      "is no PyPI wheel of it; a ROS 2 install has it)"))
+        self.health.note("pose_source", f"pose source: {mode} (pose_source auto){why}")
         return mode
 
     def _tf_links(self) -> bool:
