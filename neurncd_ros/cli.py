@@ -96,10 +96,12 @@ def cmd_convert(args: argparse.Namespace) -> int:
                    if v != getattr(formats.FolderConfig(), k)}
     t0 = time.perf_counter()
     report: dict = {}
+    # A bag source is read with topics.* and sync.* as info and run read it.
     n = formats.convert(args.src, args.out, kind=args.kind, storage=args.storage,
                         tf_parent=args.tf_parent, tf_child=args.tf_child, progress=True,
                         to=args.to, poses=args.poses, odometry=cfg.odometry, report=report,
-                        overwrite=args.overwrite, **{**folder_opts, **opts})
+                        overwrite=args.overwrite, topics=cfg.topics, sync=cfg.sync,
+                        **{**folder_opts, **opts})
     print(f"converted {n} frames from {args.src} to {args.out} ({args.to}) in "
           f"{time.perf_counter() - t0:.1f} s")
     if report:
@@ -277,7 +279,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("convert", help="convert a dataset folder or a /tf bag into a bag "
-                       "in the topic contract")
+                       "in the topic contract",
+                       description="Convert a dataset folder or a bag into a bag in the "
+                       "topic contract (or a Replica / TUM folder). A bag source is read "
+                       "as info and run read it: its topic names are the topics.* "
+                       "parameters (--config, --set topics.color=/camera/camera/color/"
+                       "image_raw), its /tf pose frames sync.tf_parent / sync.tf_child or "
+                       "--tf-parent / --tf-child. The output bag always has the topic "
+                       "contract's default names (neurncd params lists them), so it is read "
+                       "without topics.* overrides.")
     p.add_argument("src")
     p.add_argument("--out", required=True)
     p.add_argument("--kind", default="auto",
@@ -291,8 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "images (odometry.* parameters), for inputs without poses")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output bag (a failed conversion leaves none)")
-    p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame")
-    p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame")
+    p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame "
+                   "(replaces sync.tf_parent)")
+    p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame "
+                   "(replaces sync.tf_child)")
     p.add_argument("--opt", action="append", metavar="KEY=VALUE",
                    help="reader option (a convert.* parameter), e.g. --opt depth_scale=5000 "
                    "--opt 'intrinsics=[525, 525, 319.5, 239.5]'")

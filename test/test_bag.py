@@ -138,9 +138,46 @@ def test_tf_chain_static_and_dynamic(tmp_path):
                          max_stamp_skew_ns=1_000_000)
     assert list(strict) == [] and len(strict.dropped) == 3
     assert all("odom->base" in r for _, r in strict.dropped)
-    # unconnected frames are reported, not crashed on
-    lost = FrameReader(tmp_path / "chain", tf_parent="map", tf_child="camera")
-    assert len(lost) == 0 and "not connected" in lost.dropped[0][1]
+    # a frame not in the tree is refused at once, naming the bag's frames in tree order
+    # (it would drop every frame as "missing pose")
+    with pytest.raises(BagError, match=r"chain: tf frame 'map' \(tf_parent\) is not in the "
+                       r"bag's /tf tree \(frames: world, odom, base, camera\)$"):
+        FrameReader(tmp_path / "chain", tf_parent="map", tf_child="camera")
+    # tf2's names have no leading slash; one given with it is the same frame
+    assert len(FrameReader(tmp_path / "chain", tf_parent="/world", tf_child="camera")) == 3
+
+
+def test_tf_frames_missing_or_not_connected_are_named(tmp_path):
+    """A wrong tf frame name (map for odom) or two frames in separate trees: one line
+    naming the bag's frames, from the reader whatever reads the bag (info, run, convert)."""
+    frames = make_frames(2)
+    tp = Topics()
+    items = [(tp.tf_static, bag.TF_MESSAGE, STAMP0 - 10,
+              bag.tf_msg(STAMP0 - 10, [("map", "marker", np.eye(4))]))]
+    items += [it for f in frames for it in bag.frame_messages(f, tp, pose_mode="tf")]
+    bag.write_messages(tmp_path / "two", items)
+    with pytest.raises(BagError, match=r"tf frames 'map' \(tf_parent\) and 'camera' "
+                       r"\(tf_child\) are not connected in the bag's /tf tree \('map' is in "
+                       r"the tree of 'map', 'camera' in that of 'world'; frames: map, marker, "
+                       r"world, camera\)"):
+        FrameReader(tmp_path / "two", tf_parent="map", tf_child="camera")
+    with pytest.raises(BagError, match=r"tf frames 'odom' \(tf_parent\) and 'cam' "
+                       r"\(tf_child\) are not in"):
+        FrameReader(tmp_path / "two", tf_parent="odom", tf_child="cam")
+    # without poses (they are to be estimated) the tf frames are not looked at
+    assert len(FrameReader(tmp_path / "two", tf_parent="odom", tf_child="cam",
+                           with_poses=False)) == 2
+    assert_same(frames, list(FrameReader(tmp_path / "two", tf_parent="world",
+                                         tf_child="camera")))
+
+
+def test_tf_tree_order_and_roots():
+    parent = {"camera_link": "base_link", "base_link": "odom", "imu": "base_link",
+              "optical": "camera_link", "odom": "map", "a": "b", "b": "a"}
+    assert bag.tf_frames_in_tree_order(parent) == ["map", "odom", "base_link", "camera_link",
+                                                   "optical", "imu", "a", "b"]
+    assert bag.tf_root(parent, "optical") == "map" and bag.tf_root(parent, "map") == "map"
+    assert bag.tf_root(parent, "b") == bag.tf_root(parent, "a") == "a"
 
 
 def _items_without(frames, tp, drop):

@@ -188,6 +188,30 @@ def test_convert_folder_and_tf_bag(real_data_dir, tmp_path):
     assert_same(want, list(read_folder(tmp_path / "rep")), pose_atol=1e-12, gt=False)
 
 
+def test_convert_reads_a_bag_with_the_configured_topics_and_sync(tmp_path):
+    """A bag source is read with ``topics`` and ``sync`` (the configuration's, as info and
+    run read it); --tf-parent / --tf-child replace sync's frames one by one; the output
+    bag has the contract's default names."""
+    from neurncd_ros.core.topics import Topics
+
+    frames = make_frames(3)
+    theirs = Topics(color="/rgb", depth="/d", camera_info="/info", tf="/tf2",
+                    camera_frame="cam", world_frame="odom")
+    bag.write_bag(tmp_path / "src", frames, topics=theirs, pose_mode="tf")
+    with pytest.raises(bag.BagError, match="no color topic '/camera/color/image_raw'"):
+        formats.convert(tmp_path / "src", tmp_path / "x", tf_parent="odom", tf_child="cam")
+    sync = bag.SyncConfig(tf_parent="odom", tf_child="wrong")
+    assert formats.bag_sync(sync, None, "cam") == bag.SyncConfig(tf_parent="odom",
+                                                                 tf_child="cam")
+    assert formats.bag_sync(None, None, None) == bag.SyncConfig()
+    n = formats.convert(tmp_path / "src", tmp_path / "out", topics=theirs, sync=sync,
+                        tf_child="cam")
+    assert n == 3 and set(bag.bag_topics(tmp_path / "out")) == {
+        getattr(Topics(), k) for k in ("color", "depth", "camera_info", "pose", "semantic",
+                                       "instance")}
+    assert_same(frames, list(bag.FrameReader(tmp_path / "out")), pose_atol=1e-12)
+
+
 def test_bad_inputs_raise_clear_errors(real_data_dir, tmp_path):
     with pytest.raises(FormatError, match="no such file or folder"):
         list(read_folder(tmp_path / "absent"))

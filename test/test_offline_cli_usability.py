@@ -265,3 +265,102 @@ def test_a_config_that_is_not_utf8_is_named(tmp_path):
     with pytest.raises(ConfigError, match=rf"^{re.escape(str(bad))}: not UTF-8 text "
                                           r"\(byte 0xe9 at line 3"):
         config.load(bad)
+
+
+# ------------------------------------------------------------ a camera's own bag
+
+RS_TOPICS = {"color": "/camera/camera/color/image_raw",
+             "depth": "/camera/camera/aligned_depth_to_color/image_raw",
+             "camera_info": "/camera/camera/color/camera_info"}
+"""A RealSense driver's topic names (realsense2_camera 4.x), not the contract's."""
+
+RS_TF = ("odom", "camera_color_optical_frame")
+
+
+@pytest.fixture(scope="module")
+def realsense_bag(tmp_path_factory):
+    """A bag as a RealSense with odometry records it: the driver's topic names, the pose
+    on /tf as odom -> base_link (dynamic) -> camera_link -> camera_color_optical_frame
+    (static); and the frames it carries."""
+    from neurncd_ros import synth
+    from neurncd_ros.core.camera import look_at
+    from neurncd_ros.core.data import bag
+    from neurncd_ros.core.topics import Topics
+
+    frames = list(synth.generate(1002, 4, synth.SynthConfig(width=80, height=60)))
+    tp = Topics(**RS_TOPICS, camera_frame=RS_TF[1], world_frame=RS_TF[0])
+    T_bl = look_at([0.1, 0.0, 0.2], [1.0, 0.1, 0.1])   # base_link -> camera_link
+    T_lo = look_at([0.0, 0.02, 0.0], [0.0, 0.02, 1.0])  # camera_link -> optical frame
+    s0 = frames[0].stamp_ns - 10
+    items = [(tp.tf_static, bag.TF_MESSAGE, s0, bag.tf_msg(
+        s0, [("base_link", "camera_link", T_bl), ("camera_link", RS_TF[1], T_lo)]))]
+    for f in frames:
+        for topic, typ, s, msg in bag.frame_messages(f, tp, pose_mode="tf"):
+            if topic == tp.tf:
+                msg = bag.tf_msg(s, [("odom", "base_link",
+                                      f.pose @ np.linalg.inv(T_bl @ T_lo))])
+            items.append((topic, typ, s, msg))
+    path = tmp_path_factory.mktemp("realsense") / "rs.mcap"
+    bag.write_messages(path, items)
+    return path, frames
+
+
+def _set_topics() -> list[str]:
+    return [a for role, name in RS_TOPICS.items() for a in ("--set", f"topics.{role}={name}")]
+
+
+def test_convert_reads_a_bags_topics_from_the_configuration(realsense_bag, tmp_path):
+    """`neurncd convert` reads a bag's topic names from --set / --config as info and run
+    do, with the source's poses and with odometry; the bag it writes has the contract's
+    default names, so info and run read it without overrides."""
+    from neurncd_ros.core.data.bag import bag_topics
+    from neurncd_ros.core.topics import Topics
+
+    src, frames = realsense_bag
+    tf = ["--tf-parent", RS_TF[0], "--tf-child", RS_TF[1]]
+    yaml = tmp_path / "topics.yaml"
+    yaml.write_text(PARAMS + "    topics:\n" + "".join(f"      {role}: {name}\n" for role, name
+                                                     in RS_TOPICS.items()))
+    runs = {"set": [*tf, *_set_topics()], "config": [*tf, "--config", yaml],
+            "odometry": ["--poses", "odometry", *_set_topics()]}
+    for name, extra in runs.items():
+        out = tmp_path / f"{name}.mcap"
+        r = neurncd("convert", src, "--kind", "bag", "--out", out, *extra, timeout=300)
+        assert r.returncode == 0, (name, r.stderr)
+        assert f"converted {len(frames)} frames" in r.stdout, (name, r.stdout)
+        contract = Topics()
+        assert {contract.color, contract.depth, contract.camera_info, contract.pose} <= \
+            set(bag_topics(out)) and RS_TOPICS["color"] not in bag_topics(out)
+        got = list(FrameReader(out))
+        assert [g.stamp_ns for g in got] == [f.stamp_ns for f in frames]
+        if name != "odometry":  # the /tf chain composed is the camera's pose
+            for f, g in zip(frames, got):
+                np.testing.assert_allclose(g.pose, f.pose, atol=1e-9)
+    # without the topic names, the error names the topic looked for and the bag's
+    r = neurncd("convert", src, "--out", tmp_path / "none.mcap", *tf, timeout=300)
+    assert r.returncode == 1 and "no color topic '/camera/color/image_raw'" in r.stderr
+    assert RS_TOPICS["color"] in r.stderr
+    r = neurncd("convert", "--help", timeout=120)
+    assert "topics.*" in r.stdout and "default names" in r.stdout
+
+
+def test_a_tf_frame_the_bag_has_not_is_named_by_info_run_and_convert(realsense_bag,
+                                                                      tmp_path):
+    """A wrong /tf frame (map where the bag has odom) is one line naming the bag's frames
+    from info, run and convert, not 'N dropped (missing pose: N)' or 'no frames to run on';
+    so are two frames of separate trees."""
+    src, _ = realsense_bag
+    frames = "(frames: odom, base_link, camera_link, camera_color_optical_frame)"
+    missing = f"tf frame 'map' (tf_parent) is not in the bag's /tf tree {frames}"
+    sync = ["--set", "sync.tf_parent=map", "--set", f"sync.tf_child={RS_TF[1]}"]
+    for cmd in (["info", src, *sync], ["run", "--bag", src, "--out", tmp_path / "run", *sync],
+                ["convert", src, "--out", tmp_path / "c.mcap", "--tf-parent", "map",
+                 "--tf-child", RS_TF[1]]):
+        r = neurncd(*cmd, *_set_topics(), timeout=300)
+        assert r.returncode == 1, (cmd[0], r.stdout, r.stderr)
+        assert f"neurncd {cmd[0]}: error: {src}: {missing}" in r.stderr, (cmd[0], r.stderr)
+    assert not (tmp_path / "c.mcap").exists()
+    r = neurncd("info", src, *_set_topics(), "--set", "sync.tf_parent=camera_link",
+                "--set", "sync.tf_child=base_footprint", timeout=120)
+    assert r.returncode == 1
+    assert "tf frame 'base_footprint' (tf_child) is not in the bag's /tf tree" in r.stderr

@@ -4,7 +4,8 @@
   and optional semantic / instance ground truth, stamped with ``frame.stamp_ns``;
 - :class:`FrameReader` re-assembles Frames from a bag by header stamp (exact
   or nearest within ``max_stamp_skew_ns``; poses optionally interpolated),
-  taking the pose from the pose topic or from /tf (+ /tf_static) chains, and
+  taking the pose from the pose topic or from /tf (+ /tf_static) chains (a
+  tf frame pair the bag's tree cannot connect is refused, naming its frames), and
   lists what it had to drop;
 - :func:`iter_raw` yields raw CDR messages for the replay node;
   :func:`write_messages` writes arbitrary (topic, type, stamp, msg) items.
@@ -376,6 +377,66 @@ def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     return sec * 1_000_000_000 + nsec, h, w
 
 
+# ---------------------------------------------------------------- /tf tree
+
+def tf_frames_in_tree_order(parent: dict[str, str]) -> list[str]:
+    """Every frame of a child -> parent map, each tree from its root down (depth first).
+
+    The order a person reads a tf tree in (odom, base_link, camera_link, ...), which
+    a sorted list is not; roots and siblings are sorted, frames on a loop come last."""
+    children: dict[str, list[str]] = collections.defaultdict(list)
+    for child, par in parent.items():
+        children[par].append(child)
+    roots = sorted({p for p in parent.values() if p not in parent})
+    out: list[str] = []
+    stack = roots[::-1]
+    while stack:
+        frame = stack.pop()
+        if frame in out:
+            continue
+        out.append(frame)
+        stack.extend(sorted(children[frame], reverse=True))
+    return out + sorted(set(parent) - set(out))
+
+
+def tf_root(parent: dict[str, str], frame: str) -> str:
+    """The root of ``frame``'s tree in a child -> parent map (the smallest name of a loop)."""
+    seen = [frame]
+    while seen[-1] in parent:
+        up = parent[seen[-1]]
+        if up in seen:
+            return min(seen[seen.index(up):])
+        seen.append(up)
+    return seen[-1]
+
+
+def check_tf_pair(tfbuf: TfBuffer, tf_parent: str, tf_child: str, path: str | Path,
+                  tf_topic: str = "/tf") -> None:
+    """Raise :class:`BagError` when no pose tf_parent -> tf_child can come out of ``tfbuf``.
+
+    A frame missing from the tree, or two frames in different trees, would drop every
+    frame as "missing pose" one by one; one line naming the bag's frames says why
+    (a wrong frame name: ``map`` for ``odom``). The tree is the bag's whole /tf and
+    /tf_static (a frame keeps its first parent, as :meth:`TfBuffer.lookup` sees it)."""
+    parent = tfbuf.parent
+    frames = tf_frames_in_tree_order(parent)
+    listed = f"frames: {', '.join(frames) if frames else 'none'}"
+    missing = [(name, role) for name, role in ((tf_parent, "tf_parent"),
+                                               (tf_child, "tf_child"))
+               if name not in frames]
+    if missing:
+        names = " and ".join(f"{name!r} ({role})" for name, role in missing)
+        verb = "is" if len(missing) == 1 else "are"
+        raise BagError(f"{path}: tf frame{'s' * (len(missing) > 1)} {names} {verb} not in "
+                       f"the bag's {tf_topic} tree ({listed})")
+    root_p, root_c = tf_root(parent, tf_parent), tf_root(parent, tf_child)
+    if root_p != root_c:
+        raise BagError(f"{path}: tf frames {tf_parent!r} (tf_parent) and {tf_child!r} "
+                       f"(tf_child) are not connected in the bag's {tf_topic} tree "
+                       f"({tf_parent!r} is in the tree of {root_p!r}, {tf_child!r} in that "
+                       f"of {root_c!r}; {listed})")
+
+
 # ---------------------------------------------------------------- FrameReader
 
 @dataclasses.dataclass
@@ -412,7 +473,8 @@ class FrameReader:
                            f"{max_stamp_skew_ns} and {max_pose_gap_ns}")
         if bool(tf_parent) != bool(tf_child):
             raise BagError("give both tf_parent and tf_child (or neither)")
-        self.tf_pair = (tf_parent, tf_child) if tf_parent else None
+        # tf2 names frames without a leading slash (TfBuffer strips it from the bag's).
+        self.tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/")) if tf_parent else None
         self._plan_dropped: list[tuple[int, str]] = []
         self.dropped: list[tuple[int, str]] = []
         self.n_color = 0
@@ -496,6 +558,8 @@ class FrameReader:
                     tfbuf.add(msg, static=topic == tp.tf_static)
         finally:
             reader.close()
+        if self.with_poses and self.tf_pair is not None:
+            check_tf_pair(tfbuf, *self.tf_pair, path, tf_topic=tp.tf)
         self._plan_frames(heads, infos, poses, tfbuf)
 
     def _plan_frames(self, heads: dict, infos: list, poses: list, tfbuf: TfBuffer) -> None:

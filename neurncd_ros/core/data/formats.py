@@ -38,14 +38,19 @@ importable from this module.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Iterator, Sequence
 
 import numpy as np
 
 from ..frame import Frame
 from ..params import build
+from ..topics import Topics
+
+if TYPE_CHECKING:  # the bag module (rosbags) is imported when a bag is converted
+    from .bag import SyncConfig
 
 
 # Every name of the family modules is re-exported: callers import them from formats.
@@ -262,14 +267,32 @@ def is_bag(path: str | Path) -> bool:
         (p.is_file() and p.suffix in (".mcap", ".db3"))
 
 
+def bag_sync(sync: SyncConfig | None, tf_parent: str | None, tf_child: str | None
+             ) -> SyncConfig:
+    """How a bag source is read: ``sync`` (the configuration's ``sync.*``, default the
+    parameters' defaults) with the /tf pose frames given here (``convert --tf-parent``,
+    ``--tf-child``) in place of its own, each one that is given."""
+    from .bag import SyncConfig
+
+    frames = {k: v for k, v in (("tf_parent", tf_parent), ("tf_child", tf_child)) if v}
+    return dataclasses.replace(sync if sync is not None else SyncConfig(), **frames)
+
+
 def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str = "mcap",
             tf_parent: str | None = None, tf_child: str | None = None,
             to: str = "bag", progress: bool = False, poses: str = "source",
             odometry: Any = None, report: dict | None = None, overwrite: bool = False,
+            topics: Topics = Topics(), sync: SyncConfig | None = None,
             **opts: Any) -> int:
     """Convert a dataset folder or a bag into a bag (or a Replica / TUM folder).
 
-    A bag source may carry its pose on /tf (give ``tf_parent``/``tf_child``).
+    A bag source is read as ``neurncd info`` and ``run`` read one
+    (:meth:`FrameReader.from_config`): its topics are ``topics`` (the configuration's
+    ``topics.*``, e.g. a RealSense's /camera/camera/color/image_raw), its
+    synchronisation ``sync`` (``sync.*``); it may carry its pose on /tf (give
+    ``tf_parent``/``tf_child``, which replace ``sync``'s). The output bag always has
+    the topic contract's default names (``Topics()``): converting is how a bag with
+    other names becomes one the tools and nodes read without ``topics.*`` overrides.
     ``poses="odometry"`` ignores the source's poses (it need have none) and
     writes poses estimated from the images (``odometry``: an OdometryConfig);
     frames where tracking is lost are left out and counted in ``report``
@@ -289,9 +312,8 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
     if is_bag(src):
         if opts:
             raise FormatError(f"options {sorted(opts)} apply to folders, not to bag {src}")
-        frames: Iterable[Frame] = bagio.FrameReader(src, tf_parent=tf_parent,
-                                                    tf_child=tf_child,
-                                                    with_poses=not estimate)
+        frames: Iterable[Frame] = bagio.FrameReader.from_config(
+            src, topics, bag_sync(sync, tf_parent, tf_child), with_poses=not estimate)
     else:
         if estimate and (kind == "nyu_labelled" or Path(src).suffix.lower() == ".mat"):
             raise FormatError(f"{src}: the labelled frames are single views of many scenes; "
@@ -303,7 +325,7 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
         frames = with_odometry(frames, odometry, results)
     if to == "bag":
         n = bagio.write_bag(out, frames, storage=storage, progress=progress,
-                            overwrite=overwrite, **writer_opts)
+                            topics=Topics(), overwrite=overwrite, **writer_opts)
     elif to == "replica":
         n = write_replica(out, frames)
     else:
