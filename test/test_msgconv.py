@@ -100,8 +100,11 @@ def test_camera_info():
     assert intr == Intrinsics(160, 161, 159.5, 119.5, 320, 240)
     f = msgconv.camera_info_fields(intr)
     assert msgconv.camera_info_to_intrinsics(NS(**f)) == intr
-    with pytest.raises(MessageError, match="/ci: distortion"):
-        msgconv.camera_info_to_intrinsics(NS(**{**info.__dict__, "d": [0.1, 0, 0, 0, 0]}), "/ci")
+    distorted = NS(**{**info.__dict__, "d": [0.1, -0.2, 0, 0, 0]})
+    with pytest.raises(MessageError, match="/ci: distortion .*topics.distortion to 'ignore'"):
+        msgconv.camera_info_to_intrinsics(distorted, "/ci")
+    # A RealSense-like colour camera with small coefficients, taken as its K alone.
+    assert msgconv.camera_info_to_intrinsics(distorted, "/ci", "ignore") == intr
     with pytest.raises(MessageError, match="/ci: .*non-zero"):
         msgconv.camera_info_to_intrinsics(NS(**{**info.__dict__, "k": [0] * 9}), "/ci")
     with pytest.raises(MessageError, match="9"):

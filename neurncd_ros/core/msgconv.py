@@ -147,15 +147,18 @@ def depth_fields(depth_m: np.ndarray, encoding: str = "16UC1", topic: str = ""
                        f"{encoding!r}")
 
 
-def camera_info_to_intrinsics(msg: Any, topic: str = "") -> Intrinsics:
-    """sensor_msgs/CameraInfo to Intrinsics (uses K; distortion must be none/zero)."""
+def camera_info_to_intrinsics(msg: Any, topic: str = "", distortion: str = "refuse"
+                              ) -> Intrinsics:
+    """sensor_msgs/CameraInfo to Intrinsics (uses K). Non-zero distortion coefficients are
+    refused, or with ``distortion`` 'ignore' (``topics.distortion``) left out: K alone."""
     k = np.asarray(msg.k, dtype=np.float64).reshape(-1)
     if k.size != 9:
         raise MessageError(f"{_where(topic)}camera info K has {k.size} values, expected 9")
     d = np.asarray(getattr(msg, "d", []), dtype=np.float64)
-    if d.size and np.any(np.abs(d) > 1e-9):
+    if distortion != "ignore" and d.size and np.any(np.abs(d) > 1e-9):
         raise MessageError(f"{_where(topic)}distortion {d.tolist()} is not supported: "
-                           "rectify images first (images must be undistorted)")
+                           "rectify the images first, or set topics.distortion to 'ignore' "
+                           "to use K alone")
     try:
         return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
                           int(msg.width), int(msg.height))

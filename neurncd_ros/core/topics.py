@@ -54,3 +54,10 @@ class Topics:
     tf_static: str = param("/tf_static", "static transforms, tf2_msgs/TFMessage")
     camera_frame: str = param("camera", "frame_id of images and camera info")
     world_frame: str = param("world", "frame_id of the pose (fixed world frame)")
+    distortion: str = param("refuse", "camera info with non-zero distortion coefficients: "
+                            "'refuse' it (rectify the images first, e.g. image_proc), or "
+                            "'ignore' the coefficients and use K alone: the labels stay "
+                            "aligned with the raw image pixel for pixel, and the 3D fusion "
+                            "is off by the lens distortion towards the borders (small for "
+                            "the few-percent coefficients of a RealSense colour camera)",
+                            choices=("refuse", "ignore"))

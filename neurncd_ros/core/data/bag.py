@@ -545,7 +545,8 @@ class FrameReader:
                 if topic == tp.camera_info:
                     try:
                         infos.append((stamp_to_ns(msg.header.stamp),
-                                      camera_info_to_intrinsics(msg, topic)))
+                                      camera_info_to_intrinsics(msg, topic,
+                                                                tp.distortion)))
                     except MessageError as err:
                         infos.append((stamp_to_ns(msg.header.stamp), str(err)))
                 elif self.tf_pair is None:
