@@ -375,3 +375,25 @@ def test_unsupported_encodings_are_dropped_with_reason(tmp_path):
         reasons[frames[0].stamp_ns]
     assert reasons[frames[1].stamp_ns].startswith("bad color")
     assert "bad depth: 1" in reader.summary() and "bad color: 1" in reader.summary()
+
+
+def test_distorted_camera_info_is_refused_or_taken_as_its_k(tmp_path):
+    """A RealSense-like camera info with small distortion coefficients: every frame is
+    dropped with the reason naming topics.distortion, or with 'ignore' read with K."""
+    import dataclasses
+
+    frames, tp = make_frames(3), Topics()
+    items = []
+    for f in frames:
+        for topic, kind, stamp, msg in bag.frame_messages(f, tp):
+            if topic == tp.camera_info:
+                msg.d = np.array([0.12, -0.25, 0.001, 0.0, 0.1])
+            items.append((topic, kind, stamp, msg))
+    bag.write_messages(tmp_path / "b", items)
+    refused = FrameReader(tmp_path / "b")
+    assert list(refused) == []
+    assert all("topics.distortion" in reason for _, reason in refused.dropped)
+    ignored = FrameReader(tmp_path / "b", dataclasses.replace(tp, distortion="ignore"))
+    got = list(ignored)
+    assert [f.stamp_ns for f in got] == [f.stamp_ns for f in frames]
+    assert all(g.intrinsics == f.intrinsics for g, f in zip(got, frames))

@@ -259,19 +259,51 @@ def test_replay_stopped_mid_bag_says_so_and_where(small_bag):
         text[-2000:]
 
 
-def test_stop_executor_waits_for_callbacks_already_running():
-    """The node is destroyed only once no callback runs: rclpy's Executor.shutdown alone
-    returns while one still does, which then fails on the destroyed node ("cannot use
-    Destroyable because destruction was requested", printed at exit)."""
+@pytest.fixture
+def executor_node():
+    """An rclpy node and a MultiThreadedExecutor of 2 threads spinning nothing yet, on a
+    private domain; the executor is the test's to stop."""
     apply_ros_env(rosutil.domain(14))
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
+
+    rclpy.init()
+    node = rclpy.create_node("stop_executor_test")
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    yield node, executor
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def _spin_until(executor, predicate, timeout: float = 10.0) -> bool:
+    end = time.monotonic() + timeout
+    while not predicate() and time.monotonic() < end:
+        executor.spin_once(timeout_sec=0.05)
+    return predicate()
+
+
+def _record_shutdown(executor, outcome: list) -> None:
+    """Note in ``outcome`` when ``executor.shutdown`` is called."""
+    shutdown = executor.shutdown
+
+    def noted(*args, **kwargs):
+        outcome.append("shutdown")
+        return shutdown(*args, **kwargs)
+    executor.shutdown = noted
+
+
+def test_stop_executor_waits_for_callbacks_already_running(executor_node):
+    """The node is destroyed only once no callback runs: rclpy's Executor.shutdown alone
+    returns while one still does, which then fails on the destroyed node ("cannot use
+    Destroyable because destruction was requested", printed at exit). The executor is
+    shut down only after the callback ended."""
     from std_msgs.msg import String
 
     from neurncd_ros.nodes.common import stop_executor
 
-    rclpy.init()
-    node = rclpy.create_node("stop_executor_test")
+    node, executor = executor_node
     pub = node.create_publisher(String, "/stop_executor_test", 1)
     entered, release = threading.Event(), threading.Event()
     outcome: list[str] = []
@@ -288,26 +320,75 @@ def test_stop_executor_waits_for_callbacks_already_running():
             outcome.append(repr(err))
 
     node.create_timer(0.01, callback)
-    executor = MultiThreadedExecutor(num_threads=2)
-    executor.add_node(node)
+    assert _spin_until(executor, entered.is_set)
+    _record_shutdown(executor, outcome)
+    threading.Timer(0.3, release.set).start()  # goes on once the stop has begun
     try:
-        end = time.monotonic() + 10
-        while not entered.is_set() and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.05)
-        assert entered.is_set()
-        shutdown = executor.shutdown
-
-        def shutdown_then_release(*args, **kwargs):
-            result = shutdown(*args, **kwargs)
-            release.set()  # the callback goes on only once the executor was told to stop
-            return result
-        executor.shutdown = shutdown_then_release
         stop_executor(executor, timeout_sec=5.0)
-        assert outcome == ["published"], outcome
     finally:
         release.set()
-        node.destroy_node()
-        rclpy.shutdown()
+    assert outcome == ["published", "shutdown"], outcome
+
+
+def test_stop_executor_lets_callbacks_handed_to_its_threads_run_first(executor_node, capfd):
+    """The cause of "a callback failed while stopping: InvalidHandle: cannot use
+    Destroyable because destruction was requested" (one stop in three of a node fed with
+    frames): a callback the executor had handed to its thread pool but that had not
+    started yet triggers the executor's guard condition when it starts, which
+    Executor.shutdown had destroyed. Here both threads are busy, a third callback waits
+    for one, and the stop begins: it must run, and nothing fails."""
+    from rclpy.callback_groups import ReentrantCallbackGroup
+
+    from neurncd_ros.nodes.common import stop_executor
+
+    node, executor = executor_node
+    release = threading.Event()
+    calls: list[int] = []
+
+    def callback() -> None:
+        calls.append(1)
+        if len(calls) <= 2:
+            release.wait(5)  # the pool's two threads are held
+
+    node.create_timer(0.01, callback, callback_group=ReentrantCallbackGroup())
+    queued = lambda: sum(not t.done() for t in executor._futures) >= 3  # noqa: E731
+    assert _spin_until(executor, lambda: len(calls) >= 2 and queued())
+    tasks = list(executor._futures)
+    threading.Timer(0.3, release.set).start()
+    try:
+        stop_executor(executor, timeout_sec=5.0, name="stopper")
+    finally:
+        release.set()
+    assert all(t.done() for t in tasks)
+    assert [t.exception() for t in tasks if t.exception() is not None] == []
+    assert len(calls) >= 3, "the callback waiting for a thread never ran"
+    assert "failed while stopping" not in capfd.readouterr().err
+
+
+def test_stop_executor_names_the_node_of_a_callback_that_failed(executor_node, capfd):
+    """A callback failing while the node stops is reported naming the node (it was
+    printed without it, so a launch of several nodes did not tell whose it was)."""
+    from neurncd_ros.nodes.common import stop_executor
+
+    node, executor = executor_node
+    entered, release = threading.Event(), threading.Event()
+
+    def callback() -> None:
+        if entered.is_set():
+            return
+        entered.set()
+        release.wait(5)
+        raise RuntimeError("gave up")
+
+    node.create_timer(0.01, callback)
+    assert _spin_until(executor, entered.is_set)
+    threading.Timer(0.3, release.set).start()
+    try:
+        stop_executor(executor, timeout_sec=5.0, name="mapper")
+    finally:
+        release.set()
+    assert ("mapper: a callback failed while stopping: RuntimeError: gave up"
+            in capfd.readouterr().err)
 
 
 def test_stale_fast_dds_shared_memory_is_removed_and_live_segments_are_kept(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -231,6 +232,19 @@ def test_bad_parameter_stops_node_with_clear_message(args, expect, tmp_path):
         assert f"(given in params file {bad})" in r.stderr, r.stderr
 
 
+def test_an_empty_list_in_a_params_file_is_named(tmp_path):
+    """rclpy refuses `key: []` in its Node constructor without naming the key: the node
+    names it and its file."""
+    f = tmp_path / "empty.yaml"
+    f.write_text("/**:\n  ros__parameters:\n    convert:\n      intrinsics: []\n")
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args",
+                        "--params-file", str(f)], env=ros_env(rosutil.domain(6)),
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert f"convert.intrinsics in {f}: ROS cannot type an empty list" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
+
 def test_node_health_logs_every_severity_from_one_logger(ros_node):
     """Problems of every level through the same Health: rclpy must accept each of them
     (it refuses a call site whose severity changes, which once stopped the mapper)."""
@@ -270,3 +284,145 @@ def test_mapper_reports_when_it_sees_the_embedding_publisher(tmp_path):
         stop(proc)
         node.destroy_node()
         rclpy.shutdown()
+
+
+def _service(node, srv_type, name: str, request, timeout: float = 30.0):
+    """Call service ``name`` from ``node`` and return the response (spinning meanwhile)."""
+    client = node.create_client(srv_type, name)
+    assert spin_until(node, client.service_is_ready, timeout), f"{name} never came up"
+    future = client.call_async(request)
+    assert spin_until(node, future.done, timeout), f"{name} did not answer"
+    node.destroy_client(client)
+    return future.result()
+
+
+def test_configuration_parameters_are_read_only_at_run_time(ros_node, tmp_path):
+    """The nodes read their configuration once, at start: `ros2 param set` of one of its
+    parameters (what /<node>/set_parameters serves) is refused with a reason that says
+    so and how to change it, instead of being accepted and ignored; the values given at
+    start (--params-file, -p) are the ones in force, and rclpy's own parameters stay as
+    rclpy declares them."""
+    from rcl_interfaces.srv import (DescribeParameters, GetParameters, SetParameters,
+                                    SetParametersAtomically)
+    from rclpy.parameter import Parameter
+
+    node, domain = ros_node
+    params = tmp_path / "params.yaml"
+    params.write_text("/**:\n  ros__parameters:\n    mapper_node:\n      render_scale: 0.5\n")
+    log = tmp_path / "mapper.log"
+    proc = start(["-m", "neurncd_ros.nodes.mapper", "--ros-args", "--params-file",
+                  str(params), "-p", "embedding_node.max_rate_hz:=7.0"], ros_env(domain), log)
+    keys = ["embedding_node.max_rate_hz", "mapper_node.render_scale"]
+    try:
+        # Out of range, and of another node's section: both were accepted.
+        request = SetParameters.Request(parameters=[
+            Parameter(keys[0], value=5000.0).to_parameter_msg(),
+            Parameter(keys[1], value=0.9).to_parameter_msg()])
+        results = _service(node, SetParameters, "/mapper/set_parameters", request,
+                           120).results
+        assert [r.successful for r in results] == [False, False], results
+        for key, result in zip(keys, results):
+            assert result.reason.startswith(f"{key} is read-only: the node reads its "
+                                            "configuration once, at start"), result.reason
+            assert "--params-file" in result.reason and f"-p {key}:=VALUE" in result.reason
+        atomic = _service(node, SetParametersAtomically, "/mapper/set_parameters_atomically",
+                          SetParametersAtomically.Request(parameters=[
+                              Parameter(keys[1], value=0.9).to_parameter_msg()])).result
+        assert not atomic.successful and "is read-only" in atomic.reason, atomic
+        values = _service(node, GetParameters, "/mapper/get_parameters",
+                          GetParameters.Request(names=keys)).values
+        assert [v.double_value for v in values] == [7.0, 0.5]
+        described = _service(node, DescribeParameters, "/mapper/describe_parameters",
+                             DescribeParameters.Request(
+                                 names=[*keys, "mapper.backend", "use_sim_time"])).descriptors
+        assert [d.read_only for d in described] == [True, True, True, False], described
+        assert "read once, at start" in described[2].additional_constraints
+        assert proc.poll() is None, log.read_text()
+    finally:
+        code = stop(proc)
+    assert code == 0, log.read_text()[-2000:]
+
+
+def test_a_refused_stream_is_reported_as_refused_not_as_absent():
+    """A stream whose messages arrive but are refused (a colour image in rgba8) never
+    reaches the pairing, which reports it starved ("nothing arrives there"): the node's
+    health names it as refused, with the reason; a stream that really is absent keeps
+    its report."""
+    from neurncd_ros.core.engine.health import Health, report_starved
+
+    lines: list[str] = []
+    now = [100.0]
+    h = Health("mapper", lambda level, text: lines.append(text), throttle_s=0.0,
+                    clock=lambda: now[0])
+    report_starved(h, ["color"], 5.0, "images do (check the topic names")
+    assert lines[-1].startswith("waiting for color: nothing arrives there")
+    h.refuse("color", "bad_color", "colour image skipped: got 'rgba8'", "got 'rgba8'")
+    assert lines[-1] == "colour image skipped: got 'rgba8'"
+    report_starved(h, ["embedding", "color"], 5.0, "inputs do (check the topic names")
+    assert lines[-1] == ("waiting for embedding: nothing arrives there while the other "
+                         "inputs do (check the topic names within 5 ms); waiting for "
+                         "color: it arrives but is refused: got 'rgba8'")
+    report_starved(h, ["color"], 5.0, "images do (check the topic names")
+    assert lines[-1] == "waiting for color: it arrives but is refused: got 'rgba8'"
+    assert h.problems == {"bad_color": 1, "starved": 3}
+    now[0] += h.window_s + 1  # refused long ago: it may well have stopped arriving
+    report_starved(h, ["color"], 5.0, "images do (check the topic names")
+    assert lines[-1].startswith("waiting for color: nothing arrives there")
+
+
+def _rgba_msg(stamp_ns: int, w: int = 96, h: int = 72):
+    from sensor_msgs.msg import Image
+
+    msg = Image()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
+    msg.header.frame_id = "camera"
+    msg.height, msg.width, msg.encoding, msg.step = h, w, "rgba8", 4 * w
+    msg.data = bytes(4 * w * h)
+    return msg
+
+
+@pytest.mark.parametrize("node_name", ["embedding", "mapper"])
+def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_node,
+                                                                tmp_path):
+    """Colour in an encoding the nodes refuse (rgba8), depth and pose valid: both nodes
+    count it as problem `bad_color` (the mapper said `bad_colour`) and say colour arrives
+    but is refused, not "waiting for color: nothing arrives there"."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import Image
+
+    from neurncd_ros.nodes.common import image_msg, output_qos, pose_msg
+
+    node, domain = ros_node
+    log = tmp_path / f"{node_name}.log"
+    proc = start(["-m", f"neurncd_ros.nodes.{node_name}", "--ros-args", "-p",
+                  f"{node_name}_node.log_throttle_s:=0.5"], ros_env(domain), log)
+    try:
+        diag = diagnostics_of(node, (node_name,))
+        pubs = {t: node.create_publisher(m, t, output_qos()) for t, m in (
+            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
+            ("/camera/pose", PoseStamped))}
+        assert spin_until(node, lambda: node_name in diag, 120), log.read_text()
+        refused = "waiting for color: it arrives but is refused: /camera/color/image_raw: " \
+                  "colour image must be rgb8 or bgr8, got 'rgba8'"
+        stamp = 10**9
+        end = time.monotonic() + 60
+        while time.monotonic() < end and not (
+                refused in log.read_text()
+                and int(diag[node_name].get("problem.bad_color", 0)) > 0):
+            stamp += 10**9 // 20
+            pubs["/camera/color/image_raw"].publish(_rgba_msg(stamp))
+            pubs["/camera/depth/image_raw"].publish(
+                image_msg(np.full((72, 96), 1500, np.uint16), "16UC1", stamp, "camera"))
+            pubs["/camera/pose"].publish(pose_msg(np.eye(4), stamp, "world"))
+            spin_until(node, lambda: False, 0.05)
+        assert proc.poll() is None, log.read_text()
+    finally:
+        code = stop(proc)
+    text = log.read_text()
+    assert refused in text, text[-3000:]
+    assert "waiting for color: nothing arrives there" not in text, text[-3000:]
+    assert int(diag[node_name]["problem.bad_color"]) > 0, diag[node_name]
+    assert "problem.bad_colour" not in diag[node_name]
+    if node_name == "mapper":  # an input that is really absent is still named so
+        assert "waiting for embedding: nothing arrives there" in text, text[-3000:]
+    assert code == 0, text[-2000:]

@@ -59,9 +59,11 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
 
     map_path = tmp_path / "map.pt"
     log = tmp_path / "bringup.log"
+    # topics.world_frame 'map', the bag's poses in 'world': the mapper publishes its
+    # keyframe poses in the frame its poses come in.
     proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ros-args",
-                  "-p", f"mapper_node.map_path:={map_path}"], ros_env(domain), log,
-                 ignore_sigint=True)
+                  "-p", f"mapper_node.map_path:={map_path}", "-p", "topics.world_frame:=map"],
+                 ros_env(domain), log, ignore_sigint=True)
     rclpy.init()
     labels, tables, keyframes = [], [], []
     try:
@@ -96,6 +98,8 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     got = {msgconv.stamp_to_ns(m.header.stamp): m for m in labels}
     kf = {msgconv.stamp_to_ns(m.header.stamp) for m in keyframes}
     assert kf and kf <= set(got), f"keyframes not labelled: {sorted(kf - set(got))}"
+    assert {m.header.frame_id for m in keyframes} == {"world"}
+    assert "poses on /camera/pose are in frame 'world' (topics.world_frame is 'map')" in text
     for stamp, msg in got.items():
         assert stamp in stamps, "labels must carry the stamp of the frame they label"
         lab = msgconv.image_to_array(msg, "/neurncd/labels")

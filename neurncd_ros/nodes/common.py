@@ -1,4 +1,5 @@
-"""What every node shares: DDS profile, parameters from the schema, QoS, messages.
+"""What every node shares: DDS profile, read-only parameters from the schema, a clean
+stop, QoS, messages.
 
 Kept small on purpose: a node is parameters in, messages converted (with
 ``neurncd_ros.core.msgconv``), core called, messages out.
@@ -81,11 +82,18 @@ def _ros_value(value: Any) -> Any:
 
 
 def declare_config(node: Any) -> config_mod.Config:
-    """Declare every schema parameter on ``node`` and return the validated config.
+    """Declare every schema parameter on ``node``, read-only, and return the validated config.
 
     Values come from --params-file / -p overrides. A parameter name the schema
     does not know, a wrong type or an out-of-range value raises ConfigError
     naming the key and the allowed values.
+
+    The nodes read their configuration once, here: a value set at run time (``ros2 param
+    set``) would be accepted and never used. So each parameter is declared read-only (its
+    descriptor also carries the schema's description and allowed values, which ``ros2
+    param describe`` shows), and rclpy refuses a set; :class:`ReadOnlyConfig` makes the
+    refusal say how to change the value. rclpy's own parameters (``use_sim_time``) are
+    left as rclpy declares them.
     """
     from .. import config as config_mod
 
@@ -96,21 +104,89 @@ def declare_config(node: Any) -> config_mod.Config:
     if unknown:
         raise ConfigError(f"{unknown[0]}: unknown parameter; see `neurncd params` for the "
                           "list of parameters")
-    from rcl_interfaces.msg import ParameterDescriptor
-
+    specs = {f"{section}.{spec.name}": spec
+             for section, section_specs in config_mod.schema().items()
+             for spec in section_specs}
     values = {}
     for key, default in defaults.items():
-        if node.has_parameter(key):
-            value = node.get_parameter(key).value
+        spec = specs.get(key)
+        if node.has_parameter(key):  # given with --params-file / -p: declared by rclpy
+            value = node.get_parameter(key)
+            # The value stays as given (the schema checks its type below); only the
+            # descriptor changes.
+            node.set_descriptor(key, _read_only(key, spec, value.type_.value))
+            value = value.value
         elif isinstance(default, list) and not default:
-            # An empty list has no element type ROS could infer (a parameter file's
-            # `[]` arrives as "not set"): declare it dynamically typed, unset = default.
-            value = node.declare_parameter(
-                key, None, ParameterDescriptor(dynamic_typing=True)).value
+            # An empty list default has no element type ROS could infer: declare it
+            # dynamically typed, unset = default. (A parameter file's `[]` never gets here:
+            # rclpy refuses it in the Node's constructor; run_node names it, empty_lists.)
+            value = node.declare_parameter(key, None, _read_only(key, spec, 0)).value
         else:
-            value = node.declare_parameter(key, _ros_value(default)).value
+            value = node.declare_parameter(key, _ros_value(default), _read_only(key, spec)).value
         values[key] = default if value is None else value
     return config_mod.from_flat(values)
+
+
+READ_ONLY_REASON = ("{key} is read-only: the node reads its configuration once, at start, "
+                    "and would not use a value set now; restart the node with the new value "
+                    "(--ros-args --params-file FILE, or -p {key}:=VALUE)")
+
+
+def _read_only(key: str, spec: Any, type_: int | None = None) -> Any:
+    """A read-only ParameterDescriptor for schema parameter ``key`` (``spec``: its schema
+    entry), of ``type_``, a rcl_interfaces ParameterType number (None: the type
+    ``declare_parameter`` infers from the default; 0, not set: dynamically typed, as an
+    empty list has no element type ROS could infer)."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    desc = ParameterDescriptor(read_only=True, dynamic_typing=type_ == 0)
+    if type_:
+        desc.type = type_
+    if spec is not None:
+        desc.description = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
+        desc.additional_constraints = spec.allowed() + "; "
+    desc.additional_constraints += ("read once, at start: restart the node with "
+                                    "--params-file / -p to change it")
+    return desc
+
+
+class ReadOnlyConfig:
+    """Mixin of a node whose configuration :func:`declare_config` declared (put before
+    rclpy's ``Node`` in the bases): setting one of those parameters at run time is refused
+    with :data:`READ_ONLY_REASON`, which says why and how to change the value; rclpy's own
+    refusal ("Trying to set a read-only parameter: k.") says neither. Both entry points
+    are covered: ``set_parameters_atomically`` (the parameter services, ``ros2 param
+    set``) and ``set_parameters`` (in-process). Other parameters are rclpy's business."""
+
+    def _config_refusal(self, parameter_list: list) -> Any:
+        """The refusal of the first configuration parameter in ``parameter_list``, or None."""
+        from rcl_interfaces.msg import SetParametersResult
+
+        keys = _schema_keys()
+        for param in parameter_list:
+            if param.name in keys and self.has_parameter(param.name):
+                return SetParametersResult(successful=False,
+                                           reason=READ_ONLY_REASON.format(key=param.name))
+        return None
+
+    def set_parameters_atomically(self, parameter_list: list) -> Any:
+        refusal = self._config_refusal(parameter_list)
+        return super().set_parameters_atomically(parameter_list) if refusal is None \
+            else refusal
+
+    def set_parameters(self, parameter_list: list) -> list:
+        results = []
+        for param in parameter_list:  # one by one, as rclpy sets them
+            refusal = self._config_refusal([param])
+            results.append(super().set_parameters([param])[0] if refusal is None
+                           else refusal)
+        return results
+
+
+def _schema_keys() -> set[str]:
+    """Every parameter name of the configuration schema."""
+    from .. import config as config_mod
+    return set(config_mod.default().to_flat())
 
 
 def params_file_error(path: str | Path) -> str | None:
@@ -169,6 +245,33 @@ def parameter_origin(message: str, ros_args: list[str]) -> str:
     return f" (given in params file {', '.join(found)})" if found else ""
 
 
+def empty_lists(ros_args: list[str]) -> str:
+    """The parameters the params files among ``ros_args`` give as ``[]``, as a hint: rclpy
+    cannot type an empty list and refuses it in the node's constructor with a message
+    naming no key ("Cannot declare a statically typed parameter with default value of
+    type PARAMETER_NOT_SET"). ``""`` if there are none."""
+    from ..config import parameters_from_yaml, read_config_text
+
+    found = []
+    for path in params_files(ros_args):
+        try:
+            nested = parameters_from_yaml(read_config_text(Path(path)), path)
+        except ConfigError:
+            continue
+        stack = [("", nested)]
+        while stack:
+            prefix, values = stack.pop()
+            for key, value in values.items():
+                if isinstance(value, dict):
+                    stack.append((f"{prefix}{key}.", value))
+                elif value == []:
+                    found.append(f"{prefix}{key} in {path}")
+    if not found:
+        return ""
+    return (f" ({', '.join(sorted(found))}: ROS cannot type an empty list; leave the "
+            "key out to keep its default)")
+
+
 def ros_args_error(err: Exception) -> str:
     """rcl's refusal of the ROS arguments on one line, without its source locations."""
     text = str(err)
@@ -180,27 +283,39 @@ def ros_args_error(err: Exception) -> str:
     return " ".join(text.split())
 
 
-def stop_executor(executor: Any, timeout_sec: float) -> None:
-    """Stop ``executor`` and wait for the callbacks it has already handed to its threads.
+def stop_executor(executor: Any, timeout_sec: float, name: str = "") -> None:
+    """Stop ``executor`` once the callbacks it has already handed to its threads have run.
 
-    rclpy's (Jazzy) ``Executor.shutdown`` does not wait for them (it tests the flag it has
-    just set), so a timer or subscription callback could still run while the node is being
-    destroyed; it then fails with "cannot use Destroyable because destruction was
-    requested", which nobody collects and rclpy prints at exit as "The following exception
-    was never retrieved". Waiting for those tasks (a MultiThreadedExecutor keeps them in
-    ``_futures`` until it collects their results) and collecting their results here lets
-    the node be closed and destroyed when nothing uses it any more.
+    Called when nothing spins the executor any more, before the node is closed and
+    destroyed. A MultiThreadedExecutor's ``spin_once`` hands a callback to its thread pool
+    as a task that runs later, and the task triggers the executor's guard condition when
+    it starts (rclpy Jazzy, ``Executor._make_handler``). ``Executor.shutdown`` destroys
+    that guard condition at once (it does not wait for the tasks: it tests the flag it has
+    just set), so a task still queued or starting then failed with "InvalidHandle: cannot
+    use Destroyable because destruction was requested" (one stop in three of a node fed
+    with frames). So the tasks are waited for first (they are plain callbacks: they
+    finish without the executor spinning), their results collected (rclpy would print an
+    uncollected failure at exit as "The following exception was never retrieved"), and
+    only then is the executor shut down. A failure or a callback still running after
+    ``timeout_sec`` is printed naming the node (``name``).
     """
-    executor.shutdown(timeout_sec=timeout_sec)
+    prefix = f"{name}: " if name else ""
     deadline = time.monotonic() + timeout_sec
-    for task in list(getattr(executor, "_futures", ())):
+    tasks = list(getattr(executor, "_futures", ()))  # a MultiThreadedExecutor's tasks
+    for task in tasks:
         while not (task.done() or task.cancelled()) and time.monotonic() < deadline:
             time.sleep(0.01)  # rclpy futures have no blocking wait without a spinning executor
+    running = sum(1 for task in tasks if not (task.done() or task.cancelled()))
+    if running:
+        print(f"{prefix}{running} callback(s) still running {timeout_sec:g} s after the stop "
+              "was asked: stopping anyway", file=sys.stderr)
+    executor.shutdown(timeout_sec=max(0.0, deadline - time.monotonic()))
+    for task in tasks:
         if task.done():
             err = task.exception()  # collected: rclpy would print it at exit otherwise
             if err is not None:
-                print(f"a callback failed while stopping: {type(err).__name__}: {err}",
-                      file=sys.stderr)
+                print(f"{prefix}a callback failed while stopping: {type(err).__name__}: "
+                      f"{err}", file=sys.stderr)
 
 
 def ros_logger(node: Any):
@@ -283,7 +398,7 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
               file=sys.stderr)
         code = 2
     except ValueError as err:  # rclpy refusing a parameter override (e.g. `key: []`)
-        print(f"{name}: error: {err}", file=sys.stderr)
+        print(f"{name}: error: {err}{empty_lists(ros_args)}", file=sys.stderr)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -292,7 +407,7 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             # Before the node goes: no callback may still be running when it is destroyed,
             # and before the context goes: an executor left to the garbage collector
             # destroys its SIGINT guard condition after rclpy.shutdown, and that raises at exit.
-            stop_executor(executor, timeout_sec=5.0)
+            stop_executor(executor, timeout_sec=5.0, name=name)
         if node is not None:
             close = getattr(node, "close", None)
             if close:

@@ -15,8 +15,8 @@ from __future__ import annotations
 import json
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
-                     output_qos, ros_logger, run_node, view_qos)
+from .common import (ReadOnlyConfig, declare_config, diagnostics_msg, header_ns, image_msg,
+                     latched_qos, output_qos, ros_logger, run_node, view_qos)
 
 DESCRIPTION = ("Segments each rendered view's depth into convex segments, clusters them on "
                "the rendered embedding and entropy, and publishes /neurncd/labels (mono16), "
@@ -40,7 +40,7 @@ def make_node():
     from ..core.engine.records import EmbeddingSpec
     from ..core.engine.worker import Worker
 
-    class DiscoveryNode(Node):
+    class DiscoveryNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
             super().__init__("discovery",
                              automatically_declare_parameters_from_overrides=True)

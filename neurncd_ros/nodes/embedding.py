@@ -10,8 +10,8 @@ is published once, latched, on ``topics.embedding_spec``.
 from __future__ import annotations
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (declare_config, diagnostics_msg, header_ns, image_msg, latched_qos,
-                     output_qos, ros_logger, run_node, sensor_qos)
+from .common import (ReadOnlyConfig, declare_config, diagnostics_msg, header_ns, image_msg,
+                     latched_qos, output_qos, ros_logger, run_node, sensor_qos)
 
 DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colour+depth pair "
                "and publishes its embedding (32FC<C>: logits, then features) on "
@@ -35,7 +35,7 @@ def make_node():
     from ..core.engine.health import Health
     from ..core.engine.worker import Worker
 
-    class EmbeddingNode(Node):
+    class EmbeddingNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
             super().__init__("embedding",
                              automatically_declare_parameters_from_overrides=True)
@@ -71,7 +71,8 @@ def make_node():
             try:
                 rgb = msgconv.rgb_from_image(msg, self.topics.color)
             except ValueError as err:
-                self.health.problem("bad_color", f"colour image skipped: {err}")
+                self.health.refuse("color", "bad_color", f"colour image skipped: {err}",
+                                   str(err))
                 return
             if self.stage.offer("color", header_ns(msg), rgb):
                 self.worker.notify()
@@ -80,7 +81,8 @@ def make_node():
             try:
                 depth = msgconv.depth_from_image(msg, self.topics.depth)
             except ValueError as err:
-                self.health.problem("bad_depth", f"depth image skipped: {err}")
+                self.health.refuse("depth", "bad_depth", f"depth image skipped: {err}",
+                                   str(err))
                 return
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id

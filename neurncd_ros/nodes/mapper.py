@@ -20,9 +20,9 @@ from __future__ import annotations
 import os
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (camera_info_msg, declare_config, diagnostics_msg, header_ns,
-                     image_msg, latched_qos, pose_msg, ros_logger, run_node, sensor_qos,
-                     view_qos)
+from .common import (ReadOnlyConfig, camera_info_msg, declare_config, diagnostics_msg,
+                     header_ns, image_msg, latched_qos, pose_msg, ros_logger, run_node,
+                     sensor_qos, view_qos)
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
                "rendered views: /neurncd/rendered_embedding (32FC<C>), /neurncd/entropy "
@@ -54,7 +54,7 @@ def make_node():
     from ..core.engine.worker import Worker
     from ..core.field.mapper import Mapper
 
-    class MapperNode(Node):
+    class MapperNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
             super().__init__("mapper", automatically_declare_parameters_from_overrides=True)
             self.cfg = declare_config(self)
@@ -62,6 +62,9 @@ def make_node():
                 torch.set_num_threads(self.cfg.mapper.num_threads)
                 cv2.setNumThreads(self.cfg.mapper.num_threads)  # the odometry's OpenCV
             self.node_cfg, self.topics = self.cfg.mapper_node, self.cfg.topics
+            # The frame of the published keyframe and view poses: topics.world_frame, or
+            # the frame_id the pose topic's messages carry (on_pose).
+            self.world_frame = self.topics.world_frame
             self.health = Health("mapper", ros_logger(self), self.node_cfg.log_throttle_s)
             self.stage = MapperStage(self.node_cfg, mapper_factory(self.cfg), self.health)
             try:
@@ -123,11 +126,17 @@ def make_node():
             self.worker = Worker("render", self.step, self.health).start()
 
         # ------------------------------------------------------------ input
-        def _convert(self, kind: str, fn, msg, topic: str):
+        def _convert(self, kind: str, fn, msg, topic: str, stream: str | None = None):
+            """``fn(msg, topic)``, or None if it refuses the message: problem ``bad_<kind>``,
+            and the stage's input ``stream`` it feeds (if any) arrives but is refused."""
             try:
                 return fn(msg, topic)
             except ValueError as err:
-                self.health.problem(f"bad_{kind}", f"{kind} message skipped: {err}")
+                text = f"{kind} message skipped: {err}"
+                if stream is None:
+                    self.health.problem(f"bad_{kind}", text)
+                else:
+                    self.health.refuse(stream, f"bad_{kind}", text, str(err))
                 return None
 
         def _offer(self, stream: str, stamp: int, value) -> None:
@@ -136,7 +145,7 @@ def make_node():
             for job in self.stage.offer(stream, stamp, value):
                 if job.keyframe:
                     self.pub_keyframes.publish(pose_msg(job.frame.pose, job.frame.stamp_ns,
-                                                        self.topics.world_frame))
+                                                        self.world_frame))
             self.worker.notify()
 
         def _offer_poses(self, poses) -> None:
@@ -167,21 +176,32 @@ def make_node():
                                                      self.stage.intrinsics))
 
         def on_color(self, msg) -> None:
-            self._image("color", msg, self._convert("colour", msgconv.rgb_from_image, msg,
-                                                    self.topics.color))
+            self._image("color", msg, self._convert("color", msgconv.rgb_from_image, msg,
+                                                    self.topics.color, "color"))
 
         def on_depth(self, msg) -> None:
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id
             self._image("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
-                                                    self.topics.depth))
+                                                    self.topics.depth, "depth"))
 
         def on_pose(self, msg) -> None:
             if self.pub_pose is not None:
                 return  # our own poses (tf/odometry) echoed back
-            pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose)
-            if pose is not None:
-                self._offer_poses(self.poses.offer_pose(header_ns(msg), pose))
+            pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose,
+                                 "pose")
+            if pose is None:
+                return
+            frame = msg.header.frame_id.lstrip("/")
+            if frame and frame != self.world_frame:
+                # The keyframe and view poses are published in the frame the poses come
+                # in, so that they sit in the user's tf tree whatever topics.world_frame.
+                self.world_frame = frame
+                self.health.note("pose_frame", f"poses on {self.topics.pose} are in frame "
+                                 f"'{frame}' (topics.world_frame is "
+                                 f"'{self.topics.world_frame}'): the keyframe and view "
+                                 f"poses are published in '{frame}'")
+            self._offer_poses(self.poses.offer_pose(header_ns(msg), pose))
 
         def on_tf(self, msg, static: bool) -> None:
             try:
@@ -192,8 +212,9 @@ def make_node():
             self._offer_poses(poses)
 
         def on_info(self, msg) -> None:
-            intr = self._convert("camera_info", msgconv.camera_info_to_intrinsics, msg,
-                                 self.topics.camera_info)
+            intr = self._convert(
+                "camera_info", lambda m, t: msgconv.camera_info_to_intrinsics(
+                    m, t, self.topics.distortion), msg, self.topics.camera_info)
             if intr is not None:
                 self.stage.offer_info(intr)
 
@@ -212,18 +233,20 @@ def make_node():
 
         def on_embedding(self, msg) -> None:
             if self.spec is None:
-                self.health.problem("no_spec", f"embedding skipped: its spec has not arrived "
-                                    f"on {self.topics.embedding_spec} yet")
+                reason = f"its spec has not arrived on {self.topics.embedding_spec} yet"
+                self.health.refuse("embedding", "no_spec", f"embedding skipped: {reason}",
+                                   reason)
                 return
             arr = self._convert("embedding", msgconv.image_to_array, msg,
-                                self.topics.embedding)
+                                self.topics.embedding, "embedding")
             if arr is None:
                 return
             arr = arr[:, :, None] if arr.ndim == 2 else arr
             try:
                 self.spec.check(arr, self.topics.embedding)
             except ValueError as err:
-                self.health.problem("bad_embedding", f"embedding skipped: {err}")
+                self.health.refuse("embedding", "bad_embedding", f"embedding skipped: {err}",
+                                   str(err))
                 return
             stamp = header_ns(msg)
             self._offer("embedding", stamp, EmbeddingRecord(stamp, arr, self.spec))
@@ -250,7 +273,7 @@ def make_node():
                                                 t.view_depth))
             self.pub["color"].publish(image_msg(f.rgb, "rgb8", stamp, fid, t.view_color))
             self.pub_info.publish(camera_info_msg(f.intrinsics, stamp, fid))
-            self.pub_view_pose.publish(pose_msg(f.pose, stamp, t.world_frame))
+            self.pub_view_pose.publish(pose_msg(f.pose, stamp, self.world_frame))
             self.pub["entropy"].publish(image_msg(view.entropy, "32FC1", stamp, fid,
                                                   t.entropy))
             self.pub["embedding"].publish(image_msg(view.embedding,

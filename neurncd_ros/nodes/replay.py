@@ -17,7 +17,7 @@ import importlib
 import threading
 import time
 
-from .common import declare_config, latched_qos, output_qos, run_node
+from .common import ReadOnlyConfig, declare_config, latched_qos, output_qos, run_node
 
 DESCRIPTION = ("Publishes every message of a bag (mcap or sqlite3) on its recorded topic and "
                "pace, then exits. Set the bag with -p replay.bag:=scene.mcap.")
@@ -40,7 +40,7 @@ def make_node():
 
     from ..core.data.bag import BagError, bag_topics, iter_raw
 
-    class ReplayNode(Node):
+    class ReplayNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
             super().__init__("replay", automatically_declare_parameters_from_overrides=True)
             cfg = declare_config(self)

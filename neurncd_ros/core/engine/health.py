@@ -51,6 +51,7 @@ class Health:
         self.state = "starting"
         self.detail = ""
         self.error: str | None = None
+        self._refused: dict[str, tuple[float, str]] = {}  # stream -> (when, reason)
 
     # ------------------------------------------------------------ counting
     def count(self, key: str, n: int = 1) -> None:
@@ -105,6 +106,21 @@ class Health:
             return
         suffix = f" ({more} more of this kind since the last report)" if more else ""
         self._log(level, f"{message}{suffix}")
+
+    def refuse(self, stream: str, kind: str, message: str, reason: str) -> None:
+        """A message of input ``stream`` arrived and was refused for ``reason`` (a colour
+        image in an encoding the node cannot read, an embedding before its spec): a
+        problem of ``kind`` logged as ``message``, and remembered for ``window_s`` so that
+        :func:`report_starved` names the stream as refused, not as one that never comes."""
+        with self._lock:
+            self._refused[stream] = (self._clock(), reason)
+        self.problem(kind, message)
+
+    def refused(self) -> dict[str, str]:
+        """The input streams refused in the last ``window_s`` seconds, with the reason."""
+        now = self._clock()
+        with self._lock:
+            return {s: r for s, (t, r) in self._refused.items() if now - t <= self.window_s}
 
     def note(self, kind: str, message: str) -> None:
         """An event worth a log line that is not a problem (a decision the stage took, such
@@ -188,6 +204,14 @@ def sync_reporter(health, names: dict[str, str] | None = None):
 def report_starved(health, starved: list[str], tolerance_ms: float, check: str) -> None:
     """Report the streams a :class:`..sync.StampSync` waits for while the others arrive
     (``StampSync.starved``), with what to ``check``; nothing if none."""
-    if starved:
-        health.problem("starved", f"waiting for {', '.join(starved)}: nothing arrives there "
-                       f"while the other {check} within {tolerance_ms:g} ms)")
+    if not starved:
+        return
+    refused = health.refused()
+    absent = [s for s in starved if s not in refused]
+    parts = [f"waiting for {', '.join(absent)}: nothing arrives there while the other "
+             f"{check} within {tolerance_ms:g} ms)"] if absent else []
+    # A stream whose messages arrive and are refused never reaches the pairing, which
+    # then sees nothing of it: name it as refused, with the reason.
+    parts += [f"waiting for {s}: it arrives but is refused: {refused[s]}"
+              for s in starved if s in refused]
+    health.problem("starved", "; ".join(parts))
