@@ -41,8 +41,8 @@ import sys
 import threading
 import time
 
-from .common import (ConfigError, diagnostics_status, ensure_dds_profile, params_file_error,
-                     share_file)
+from .common import ConfigError, diagnostics_status, ensure_dds_profile, share_file
+from .parameters import params_file_error
 from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
 NODES = ("embedding", "mapper", "discovery")

@@ -15,8 +15,9 @@ from __future__ import annotations
 import json
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (ReadOnlyConfig, declare_config, diagnostics_msg, header_ns, image_msg,
-                     latched_qos, output_qos, ros_logger, run_node, view_qos)
+from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
+                     ros_logger, run_node, view_qos)
+from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Segments each rendered view's depth into convex segments, clusters them on "
                "the rendered embedding and entropy, and publishes /neurncd/labels (mono16), "

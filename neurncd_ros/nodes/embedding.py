@@ -10,8 +10,9 @@ is published once, latched, on ``topics.embedding_spec``.
 from __future__ import annotations
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (ReadOnlyConfig, declare_config, diagnostics_msg, header_ns, image_msg,
-                     latched_qos, output_qos, ros_logger, run_node, sensor_qos)
+from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
+                     ros_logger, run_node, sensor_qos)
+from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colour+depth pair "
                "and publishes its embedding (32FC<C>: logits, then features) on "

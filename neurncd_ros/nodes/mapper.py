@@ -20,9 +20,9 @@ from __future__ import annotations
 import os
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (ReadOnlyConfig, camera_info_msg, declare_config, diagnostics_msg,
-                     header_ns, image_msg, latched_qos, pose_msg, ros_logger, run_node,
-                     sensor_qos, view_qos)
+from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, latched_qos,
+                     pose_msg, ros_logger, run_node, sensor_qos, view_qos)
+from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
                "rendered views: /neurncd/rendered_embedding (32FC<C>), /neurncd/entropy "

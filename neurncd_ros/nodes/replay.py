@@ -17,7 +17,8 @@ import importlib
 import threading
 import time
 
-from .common import ReadOnlyConfig, declare_config, latched_qos, output_qos, run_node
+from .common import latched_qos, output_qos, run_node
+from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Publishes every message of a bag (mcap or sqlite3) on its recorded topic and "
                "pace, then exits. Set the bag with -p replay.bag:=scene.mcap.")
