@@ -226,6 +226,10 @@ def test_bad_inputs_raise_clear_errors(real_data_dir, tmp_path):
         read_folder(tmp_path / "empty")
     with pytest.raises(FormatError, match="intrinsics must be 4"):
         list(read_folder(real_data_dir / "kinect_dining", intrinsics=[1.0, 2.0]))
+    with pytest.raises(FormatError, match="--tf-parent / --tf-child apply to a bag"):
+        formats.convert(real_data_dir / "kinect_dining", tmp_path / "o.mcap", tf_parent="map",
+                        tf_child="camera")
+    assert not (tmp_path / "o.mcap").exists()
     # a broken pose file names the file and line
     formats.write_replica(tmp_path / "r", make_frames(2))
     traj = tmp_path / "r/traj_w_c.txt"

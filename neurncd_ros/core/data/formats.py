@@ -315,6 +315,10 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
         frames: Iterable[Frame] = bagio.FrameReader.from_config(
             src, topics, bag_sync(sync, tf_parent, tf_child), with_poses=not estimate)
     else:
+        if tf_parent or tf_child:
+            raise FormatError(f"{src} is a dataset folder: --tf-parent / --tf-child apply "
+                              "to a bag's /tf (a folder's poses come from its trajectory "
+                              "file)")
         if estimate and (kind == "nyu_labelled" or Path(src).suffix.lower() == ".mat"):
             raise FormatError(f"{src}: the labelled frames are single views of many scenes; "
                               "odometry needs a sequence (convert the raw sequence instead)")
