@@ -155,6 +155,18 @@ def test_a_reference_message_after_its_partners_expired_is_reported_late():
     clock.t = 8.0
     s.add("color", 400 * MS, "c4")
     assert seen == [("embedding", "unpaired", 300 * MS, "pose")]
+    # Pushed out of a full queue before the embedding came: late too.
+    seen.clear()
+    small = sync.StampSync(("embedding", "color"), tolerance_ns=MS, horizon_s=10.0,
+                           capacity=2, clock=clock, on_anomaly=lambda *a: seen.append(a))
+    small.add("color", 0, "c0")
+    small.add("embedding", 0, "e0")
+    for k in (1, 2, 3):
+        small.add("color", k * 100 * MS, f"c{k}")           # c1 is pushed out by c3
+    assert small.drops["overflow"] == 1
+    small.add("embedding", 100 * MS, "e1")
+    small.add("embedding", 200 * MS, "e2")                   # pairs; e1 is given up
+    assert seen == [("embedding", "late", 100 * MS, "color (0.0 s before it)")]
     # After a reset (a new bag) the old expiries are forgotten.
     s.reset()
     assert all(not q for q in s._expired.values())

@@ -111,8 +111,9 @@ class StampSync:
     that had no message near its stamp: a frame whose pose never came is reported, not
     only counted; before the first group, partners sent before the node subscribed are
     expected to be missing and are not), or ``late`` when its partners did come but had
-    expired before it arrived (``detail``: those streams and how long before it they
-    came; the stage upstream is behind by more than ``horizon_s``);
+    been given up before it arrived, expired or pushed out of a full queue (``detail``:
+    those streams and how long before it they came; the stage upstream is that far
+    behind);
     :meth:`starved` names streams that do not arrive while others do (a wrong topic
     name or stamps that never agree), which a node reports in a warning.
     """
@@ -144,9 +145,9 @@ class StampSync:
         self._backwards = 0
         self._jumps = 0
         self._since_group = collections.Counter()
-        # Per partner stream, the (stamp, arrival) of its recent messages that expired: a
-        # reference message arriving after its partners expired is reported as late, not
-        # as one whose partners never came.
+        # Per partner stream, the (stamp, arrival) of its recent messages given up (expired,
+        # or pushed out of a full queue): a reference message arriving after its partners
+        # were given up is reported as late, not as one whose partners never came.
         self._expired = {s: collections.deque(maxlen=max(1, self.capacity))
                          for s in self.streams[1:]}
         self._on_anomaly = on_anomaly
@@ -262,6 +263,8 @@ class StampSync:
         queue.append((stamp_ns, now, value))
         queue.sort(key=lambda e: e[0])
         if len(queue) > self.capacity:
+            if stream in self._expired:
+                self._expired[stream].append((queue[0][0], queue[0][1]))
             del queue[0]
             self._drop(stream, "overflow")
             self._since_group[(stream, "overflow")] += 1

@@ -181,10 +181,11 @@ def sync_reporter(health, names: dict[str, str] | None = None):
                      "(a new bag, a restarted camera), pairing restarts",
              "unpaired": "{n}: the frame stamped {s} is given up unpaired: nothing came "
                          "on {d} within the sync tolerance: dropped",
-             "late": "{n}: the frame stamped {s} came after its {d} had waited the sync "
-                     "horizon and been given up: dropped; the stage upstream is that far "
-                     "behind (a slow machine, large images): raise sync_horizon_s or "
-                     "lower the load (smaller images, a lower rate)",
+             "late": "{n}: the frame stamped {s} came after its {d} had been given up "
+                     "(they wait sync_horizon_s, and at most a queue's worth of them): "
+                     "dropped; the stage upstream is that far behind (a slow machine, "
+                     "large images): raise sync_horizon_s and queue_size, or lower the "
+                     "load (smaller images, a lower rate)",
              "time_reset": "{n}: stamps went back or jumped ahead (bag loop, new bag or "
                            "clock reset): pairing restarts"}
 

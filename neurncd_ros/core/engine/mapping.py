@@ -182,7 +182,9 @@ class MapperNodeConfig:
                                   "embedding (the embedding stage skips most frames)",
                                   lo=0.01, hi=600.0, unit="s")
     sync_max_jump_s: float = max_jump_param()
-    queue_size: int = param(30, "subscription depth of the input topics", lo=1, hi=1000)
+    queue_size: int = param(30, "subscription depth of the input topics; the pairing holds "
+                            "up to max(2 queue_size, 30 x sync_horizon_s) messages of each "
+                            "input while they wait for their embedding", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
@@ -211,7 +213,12 @@ class MapperStage:
         self._clock = clock
         self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
         self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
-                              cfg.sync_horizon_s, capacity=max(4, cfg.queue_size), clock=clock,
+                              # Room for sync_horizon_s of a 30 Hz camera: at 1280x720 the
+                              # embedding comes over a second after its frame, and a queue
+                              # of 30 pushed every partner out first.
+                              cfg.sync_horizon_s, capacity=max(4, 2 * cfg.queue_size,
+                                                               int(30 * cfg.sync_horizon_s)),
+                              clock=clock,
                               on_anomaly=sync_reporter(self.health),
                               max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
         self.mapper = None
