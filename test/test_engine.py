@@ -758,7 +758,9 @@ def test_a_learnt_field_renders_the_features_it_distils(frames):
 def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):
     """Colour, depth and pose come but no embedding: the stage says which stream it waits
     for and what to check, instead of rendering nothing in silence."""
-    st = _stage(cfg, queue_size=4)
+    # A short horizon keeps the pairing's queues short (it holds sync_horizon_s of a 30 Hz
+    # camera): 12 frames fill them, as seconds of a camera would.
+    st = _stage(cfg, queue_size=4, sync_horizon_s=0.1)
     logged = []
     st.health._log = lambda level, text: logged.append(text)
     for f in frames[:12]:

@@ -290,8 +290,16 @@ def _service(node, srv_type, name: str, request, timeout: float = 30.0):
     """Call service ``name`` from ``node`` and return the response (spinning meanwhile)."""
     client = node.create_client(srv_type, name)
     assert spin_until(node, client.service_is_ready, timeout), f"{name} never came up"
-    future = client.call_async(request)
-    assert spin_until(node, future.done, timeout), f"{name} did not answer"
+    # A request sent as soon as the server is discovered can be lost: the server may not
+    # have matched the client's response reader yet (seen once in a full suite, no answer
+    # in 120 s). The parameter services are idempotent, so the request is sent again.
+    end = time.monotonic() + timeout
+    while True:
+        future = client.call_async(request)
+        if spin_until(node, future.done, min(10.0, max(0.1, end - time.monotonic()))):
+            break
+        client.remove_pending_request(future)
+        assert time.monotonic() < end, f"{name} did not answer"
     node.destroy_client(client)
     return future.result()
 
