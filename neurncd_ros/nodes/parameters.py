@@ -151,14 +151,25 @@ def params_files(ros_args: list[str]) -> list[str]:
     return [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == "--params-file"]
 
 
-def _flat_keys(values: Any, prefix: str = "") -> set[str]:
-    """Every dotted key of a nested mapping, sections included (``mapper``, ``mapper.lr``)."""
-    keys: set[str] = set()
-    for key, value in (values.items() if isinstance(values, dict) else ()):
-        name = f"{prefix}{key}"
-        keys.add(name)
-        keys |= _flat_keys(value, name + ".")
-    return keys
+def _file_parameters(path: str) -> dict[str, Any]:
+    """Every parameter a params file gives, by dotted name, sections included (``mapper``
+    and ``mapper.lr``), with its value; {} for a file the configuration cannot read (that
+    is reported on its own, :func:`params_file_error`)."""
+    from ..config import parameters_from_yaml, read_config_text
+
+    try:
+        nested = parameters_from_yaml(read_config_text(Path(path)), path)
+    except ConfigError:
+        return {}
+    out: dict[str, Any] = {}
+    stack = [("", nested)]
+    while stack:
+        prefix, values = stack.pop()
+        for key, value in values.items():
+            out[f"{prefix}{key}"] = value
+            if isinstance(value, dict):
+                stack.append((f"{prefix}{key}.", value))
+    return out
 
 
 def parameter_origin(message: str, ros_args: list[str]) -> str:
@@ -167,22 +178,13 @@ def parameter_origin(message: str, ros_args: list[str]) -> str:
     merges the files and overrides before the node sees a value, so without this a wrong
     value in a file of many parameters (``mapper: 3`` in place of a section) is named
     without the file it is in."""
-    from ..config import parameters_from_yaml, read_config_text
-
     key = message.split(":", 1)[0].strip()
     if not key or " " in key:
         return ""
     for i, arg in enumerate(ros_args[:-1]):
         if arg in ("-p", "--param") and ros_args[i + 1].split(":=", 1)[0] == key:
             return " (given with -p)"
-    found = []
-    for path in params_files(ros_args):
-        try:
-            keys = _flat_keys(parameters_from_yaml(read_config_text(Path(path)), path))
-        except ConfigError:
-            continue
-        if key in keys:
-            found.append(path)
+    found = [path for path in params_files(ros_args) if key in _file_parameters(path)]
     return f" (given in params file {', '.join(found)})" if found else ""
 
 
@@ -191,22 +193,8 @@ def empty_lists(ros_args: list[str]) -> str:
     cannot type an empty list and refuses it in the node's constructor with a message
     naming no key ("Cannot declare a statically typed parameter with default value of
     type PARAMETER_NOT_SET"). ``""`` if there are none."""
-    from ..config import parameters_from_yaml, read_config_text
-
-    found = []
-    for path in params_files(ros_args):
-        try:
-            nested = parameters_from_yaml(read_config_text(Path(path)), path)
-        except ConfigError:
-            continue
-        stack = [("", nested)]
-        while stack:
-            prefix, values = stack.pop()
-            for key, value in values.items():
-                if isinstance(value, dict):
-                    stack.append((f"{prefix}{key}.", value))
-                elif value == []:
-                    found.append(f"{prefix}{key} in {path}")
+    found = [f"{key} in {path}" for path in params_files(ros_args)
+             for key, value in _file_parameters(path).items() if value == []]
     if not found:
         return ""
     return (f" ({', '.join(sorted(found))}: ROS cannot type an empty list; leave the "
