@@ -169,7 +169,7 @@ def test_a_reference_message_after_its_partners_expired_is_reported_late():
     assert seen == [("embedding", "late", 100 * MS, "color (0.0 s before it)")]
     # After a reset (a new bag) the old expiries are forgotten.
     s.reset()
-    assert all(not q for q in s._expired.values())
+    assert all(not q for q in s._given_up.values())
 
 
 def test_unmatched_messages_expire_and_memory_is_bounded():

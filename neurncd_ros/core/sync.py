@@ -148,7 +148,7 @@ class StampSync:
         # Per partner stream, the (stamp, arrival) of its recent messages given up (expired,
         # or pushed out of a full queue): a reference message arriving after its partners
         # were given up is reported as late, not as one whose partners never came.
-        self._expired = {s: collections.deque(maxlen=max(1, self.capacity))
+        self._given_up = {s: collections.deque(maxlen=max(1, self.capacity))
                          for s in self.streams[1:]}
         self._on_anomaly = on_anomaly
 
@@ -183,7 +183,7 @@ class StampSync:
         self._backwards = 0
         self._jumps = 0
         self._since_group.clear()
-        for q in self._expired.values():
+        for q in self._given_up.values():
             q.clear()
 
     def _missing(self, stamp_ns: int) -> list[str]:
@@ -199,9 +199,9 @@ class StampSync:
             return
         for stamp, arrival, _ in entries:
             missing = self._missing(stamp)
-            late = {}  # stream -> seconds its message came before this one and expired
+            late = {}  # stream -> seconds its message came before this one (given up)
             for s in missing:
-                near = [t for st, t in self._expired[s] if abs(st - stamp) <= self.tolerance_ns]
+                near = [t for st, t in self._given_up[s] if abs(st - stamp) <= self.tolerance_ns]
                 if near:
                     late[s] = arrival - max(near)
             absent = [s for s in missing if s not in late]
@@ -217,8 +217,8 @@ class StampSync:
         for s, q in self._pending.items():
             keep = [e for e in q if now - e[1] <= self.horizon_s]
             if len(keep) != len(q):
-                if s in self._expired:
-                    self._expired[s].extend((e[0], e[1]) for e in q
+                if s in self._given_up:
+                    self._given_up[s].extend((e[0], e[1]) for e in q
                                             if now - e[1] > self.horizon_s)
                 self._drop(s, "expired", len(q) - len(keep))
                 self._since_group[(s, "expired")] += len(q) - len(keep)
@@ -263,8 +263,8 @@ class StampSync:
         queue.append((stamp_ns, now, value))
         queue.sort(key=lambda e: e[0])
         if len(queue) > self.capacity:
-            if stream in self._expired:
-                self._expired[stream].append((queue[0][0], queue[0][1]))
+            if stream in self._given_up:
+                self._given_up[stream].append((queue[0][0], queue[0][1]))
             del queue[0]
             self._drop(stream, "overflow")
             self._since_group[(stream, "overflow")] += 1
