@@ -397,3 +397,28 @@ def test_distorted_camera_info_is_refused_or_taken_as_its_k(tmp_path):
     got = list(ignored)
     assert [f.stamp_ns for f in got] == [f.stamp_ns for f in frames]
     assert all(g.intrinsics == f.intrinsics for g, f in zip(got, frames))
+
+
+def test_a_bag_whose_frames_are_all_dropped_says_why(tmp_path):
+    """info names the first reason of each kind in full; run and convert refuse such a
+    bag with it instead of 'no frames to run on' or an empty output bag."""
+    from neurncd_ros import config
+    from neurncd_ros.core.data import formats
+    from neurncd_ros.core.engine.offline import run_bag
+
+    frames, tp = make_frames(3), Topics()
+    items = []
+    for f in frames:
+        for topic, kind, stamp, msg in bag.frame_messages(f, tp):
+            if topic == tp.camera_info:
+                msg.d = np.array([0.1, -0.05, 0.001, 0.0, 0.0])
+            items.append((topic, kind, stamp, msg))
+    bag.write_messages(tmp_path / "b", items)
+    text = FrameReader(tmp_path / "b").summary()
+    assert "3 dropped (bad camera_info: 3)" in text
+    assert "first bad camera_info: " in text and "topics.distortion to 'ignore'" in text
+    with pytest.raises(ValueError, match="no frames to run on: .*topics.distortion"):
+        run_bag(tmp_path / "b", config.default(), tmp_path / "run")
+    with pytest.raises(formats.FormatError, match="no frames to convert: .*topics.distortion"):
+        formats.convert(tmp_path / "b", tmp_path / "out.mcap")
+    assert not (tmp_path / "out.mcap").exists()

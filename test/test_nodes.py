@@ -243,6 +243,18 @@ def test_an_empty_list_in_a_params_file_is_named(tmp_path):
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"convert.intrinsics in {f}: ROS cannot type an empty list" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.mapper", "--ros-args", "-p",
+                        "convert.intrinsics:=[]"], env=ros_env(rosutil.domain(6)),
+                       capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2 and "convert.intrinsics given with -p" in r.stderr, r.stderr
+    # bringup checks the file before it starts any node: one line.
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.bringup", "--params-file",
+                        str(f)], env=ros_env(rosutil.domain(6)), capture_output=True,
+                       text=True, timeout=120, cwd=REPO)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.strip() == (f"bringup: configuration error: convert.intrinsics in {f}: "
+                                "ROS cannot type an empty list; leave the key out to keep "
+                                "its default"), r.stderr
 
 
 def test_node_health_logs_every_severity_from_one_logger(ros_node):

@@ -42,7 +42,7 @@ import threading
 import time
 
 from .common import ConfigError, diagnostics_status, ensure_dds_profile, share_file
-from .parameters import params_file_error
+from .parameters import empty_lists, params_file_error
 from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
 NODES = ("embedding", "mapper", "discovery")
@@ -184,7 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     from .. import config as config_mod
 
     try:
-        problem = params_file_error(args.params_file)
+        problem = (params_file_error(args.params_file)
+                   or empty_lists(["--params-file", args.params_file, *ros_args]).strip()
+                   .removeprefix("(").removesuffix(")"))
         if problem:
             raise ConfigError(problem)
         topic = config_mod.load(args.params_file).topics.diagnostics

@@ -195,6 +195,9 @@ def empty_lists(ros_args: list[str]) -> str:
     type PARAMETER_NOT_SET"). ``""`` if there are none."""
     found = [f"{key} in {path}" for path in params_files(ros_args)
              for key, value in _file_parameters(path).items() if value == []]
+    found += [f"{arg.split(':=', 1)[0]} given with -p" for i, arg in enumerate(ros_args)
+              if i and ros_args[i - 1] in ("-p", "--param")
+              and arg.replace(" ", "").endswith(":=[]")]
     if not found:
         return ""
     return (f" ({', '.join(sorted(found))}: ROS cannot type an empty list; leave the "

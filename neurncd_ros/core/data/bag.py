@@ -717,6 +717,13 @@ class FrameReader:
                 f"synchronised (skew <= {self.skew / 1e6:g} ms), {len(self.dropped)} dropped")
         if reasons:
             text += " (" + ", ".join(f"{k}: {v}" for k, v in sorted(reasons.items())) + ")"
+            # One full reason per kind: the kind alone ("bad camera_info") does not say
+            # what to change (a distortion to refuse or ignore, topics.distortion).
+            first = {}
+            for _, r in self.dropped:
+                first.setdefault(r.split(":", 1)[0], r)
+            text += "".join(f"; first {k}: {first[k].split(':', 1)[1].strip()}"
+                            for k in sorted(first) if ":" in first[k])
         text += f"; pose from {self.pose_source}; ground truth: "
         text += ", ".join(self.gt_roles) if self.gt_roles else "none"
         if self.missing_gt:

@@ -312,8 +312,11 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
     if is_bag(src):
         if opts:
             raise FormatError(f"options {sorted(opts)} apply to folders, not to bag {src}")
-        frames: Iterable[Frame] = bagio.FrameReader.from_config(
+        reader = bagio.FrameReader.from_config(
             src, topics, bag_sync(sync, tf_parent, tf_child), with_poses=not estimate)
+        if not len(reader):  # no empty bag written with exit 0: say why nothing is left
+            raise FormatError(f"no frames to convert: {reader.summary()}")
+        frames: Iterable[Frame] = reader
     else:
         if tf_parent or tf_child:
             raise FormatError(f"{src} is a dataset folder: --tf-parent / --tf-child apply "

@@ -373,6 +373,8 @@ def run_bag(bag: str | Path, cfg, out_dir: str | Path) -> dict[str, Any]:
             out["odometry_lost"] = sum(r.pose is None for r in tracked)
         return out
 
+    if not len(reader):  # every frame dropped: say why, not only that nothing is left
+        raise ValueError(f"no frames to run on: {reader.summary()}")
     return run_frames(frames, cfg, out_dir, total=len(reader), source=source)
 
 
