@@ -385,6 +385,12 @@ def test_a_refused_stream_is_reported_as_refused_not_as_absent():
     report_starved(h, ["color"], 5.0, "images do (check the topic names")
     assert lines[-1] == "waiting for color: it arrives but is refused: got 'rgba8'"
     assert h.problems == {"bad_color": 1, "starved": 3}
+    from neurncd_ros.core.engine.health import no_camera_info
+    assert no_camera_info(h) == "no camera info received yet"
+    h.refuse("camera_info", "bad_camera_info", "camera_info message skipped: distortion",
+             "distortion [0.1] is not supported")
+    assert no_camera_info(h) == ("its camera info arrives but is refused: distortion [0.1] "
+                                 "is not supported")
     now[0] += h.window_s + 1  # refused long ago: it may well have stopped arriving
     report_starved(h, ["color"], 5.0, "images do (check the topic names")
     assert lines[-1].startswith("waiting for color: nothing arrives there")

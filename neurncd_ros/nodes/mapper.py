@@ -214,7 +214,8 @@ def make_node():
         def on_info(self, msg) -> None:
             intr = self._convert(
                 "camera_info", lambda m, t: msgconv.camera_info_to_intrinsics(
-                    m, t, self.topics.distortion), msg, self.topics.camera_info)
+                    m, t, self.topics.distortion), msg, self.topics.camera_info,
+                "camera_info")
             if intr is not None:
                 self.stage.offer_info(intr)
 

@@ -202,6 +202,15 @@ def sync_reporter(health, names: dict[str, str] | None = None):
     return report
 
 
+def no_camera_info(health) -> str:
+    """Why a frame has no intrinsics: its camera info arrives but is refused (the reason
+    :meth:`Health.refuse` recorded for stream ``camera_info``, e.g. a distortion), or none
+    has come yet."""
+    why = health.refused().get("camera_info")
+    return (f"its camera info arrives but is refused: {why}" if why
+            else "no camera info received yet")
+
+
 def report_starved(health, starved: list[str], tolerance_ms: float, check: str) -> None:
     """Report the streams a :class:`..sync.StampSync` waits for while the others arrive
     (``StampSync.starved``), with what to ``check``; nothing if none."""

@@ -65,7 +65,7 @@ from ..camera import Intrinsics, backproject, rays
 from ..frame import Frame
 from ..params import param
 from ..sync import StampSync, max_jump_param
-from .health import Health, report_starved, sync_reporter
+from .health import Health, no_camera_info, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to,
                     view_visibility)
@@ -312,8 +312,8 @@ class MapperStage:
             self.health.count("frames_paired")
             intr = self.intrinsics
             if intr is None:
-                self.health.problem("no_camera_info", f"frame {stamp} skipped: no camera "
-                                    "info received yet")
+                self.health.problem("no_camera_info", f"frame {stamp} skipped: "
+                                    f"{no_camera_info(self.health)}")
                 continue
             try:
                 frame = Frame(stamp, g["color"], g["depth"], g["pose"], intr).validate()

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..sync import StampSync, TfBuffer
-from .health import Health, sync_reporter
+from .health import Health, no_camera_info, sync_reporter
 
 SOURCES = ("auto", "topic", "tf", "odometry")
 
@@ -246,8 +246,8 @@ class PoseStage:
     def _track(self, stamp: int, rgb: np.ndarray, depth: np.ndarray,
                intrinsics: Intrinsics | None) -> np.ndarray | None:
         if intrinsics is None:
-            self.health.problem("no_camera_info", f"frame {stamp} not tracked: no camera "
-                                "info received yet")
+            self.health.problem("no_camera_info", f"frame {stamp} not tracked: "
+                                f"{no_camera_info(self.health)}")
             return None
         if self.odometry is None:
             from ..odometry import RGBDOdometry
