@@ -377,11 +377,8 @@ def test_unsupported_encodings_are_dropped_with_reason(tmp_path):
     assert "bad depth: 1" in reader.summary() and "bad color: 1" in reader.summary()
 
 
-def test_distorted_camera_info_is_refused_or_taken_as_its_k(tmp_path):
-    """A RealSense-like camera info with small distortion coefficients: every frame is
-    dropped with the reason naming topics.distortion, or with 'ignore' read with K."""
-    import dataclasses
-
+def _distorted_bag(path: Path) -> tuple[list[Frame], Topics]:
+    """Three frames whose camera info has a RealSense-like small distortion."""
     frames, tp = make_frames(3), Topics()
     items = []
     for f in frames:
@@ -389,7 +386,16 @@ def test_distorted_camera_info_is_refused_or_taken_as_its_k(tmp_path):
             if topic == tp.camera_info:
                 msg.d = np.array([0.12, -0.25, 0.001, 0.0, 0.1])
             items.append((topic, kind, stamp, msg))
-    bag.write_messages(tmp_path / "b", items)
+    bag.write_messages(path, items)
+    return frames, tp
+
+
+def test_distorted_camera_info_is_refused_or_taken_as_its_k(tmp_path):
+    """A RealSense-like camera info with small distortion coefficients: every frame is
+    dropped with the reason naming topics.distortion, or with 'ignore' read with K."""
+    import dataclasses
+
+    frames, tp = _distorted_bag(tmp_path / "b")
     refused = FrameReader(tmp_path / "b")
     assert list(refused) == []
     assert all("topics.distortion" in reason for _, reason in refused.dropped)
@@ -406,14 +412,7 @@ def test_a_bag_whose_frames_are_all_dropped_says_why(tmp_path):
     from neurncd_ros.core.data import formats
     from neurncd_ros.core.engine.offline import run_bag
 
-    frames, tp = make_frames(3), Topics()
-    items = []
-    for f in frames:
-        for topic, kind, stamp, msg in bag.frame_messages(f, tp):
-            if topic == tp.camera_info:
-                msg.d = np.array([0.1, -0.05, 0.001, 0.0, 0.0])
-            items.append((topic, kind, stamp, msg))
-    bag.write_messages(tmp_path / "b", items)
+    _distorted_bag(tmp_path / "b")
     text = FrameReader(tmp_path / "b").summary()
     assert "3 dropped (bad camera_info: 3)" in text
     assert "first bad camera_info: " in text and "topics.distortion to 'ignore'" in text
