@@ -215,14 +215,13 @@ class StampSync:
         self._report_unpaired([e for e in self._pending[self.streams[0]]
                                if now - e[1] > self.horizon_s])
         for s, q in self._pending.items():
-            keep = [e for e in q if now - e[1] <= self.horizon_s]
-            if len(keep) != len(q):
+            gone = [e for e in q if now - e[1] > self.horizon_s]
+            if gone:
                 if s in self._given_up:
-                    self._given_up[s].extend((e[0], e[1]) for e in q
-                                            if now - e[1] > self.horizon_s)
-                self._drop(s, "expired", len(q) - len(keep))
-                self._since_group[(s, "expired")] += len(q) - len(keep)
-                q[:] = keep
+                    self._given_up[s].extend((e[0], e[1]) for e in gone)
+                self._drop(s, "expired", len(gone))
+                self._since_group[(s, "expired")] += len(gone)
+                q[:] = [e for e in q if now - e[1] <= self.horizon_s]
 
     def add(self, stream: str, stamp_ns: int, value: Any) -> list[tuple[int, dict[str, Any]]]:
         """Store one stream's message; the groups it completed, oldest first (class doc)."""

@@ -185,8 +185,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         problem = (params_file_error(args.params_file)
-                   or empty_lists(["--params-file", args.params_file, *ros_args]).strip()
-                   .removeprefix("(").removesuffix(")"))
+                   or empty_lists(["--params-file", args.params_file, *ros_args]))
         if problem:
             raise ConfigError(problem)
         topic = config_mod.load(args.params_file).topics.diagnostics

@@ -191,7 +191,8 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
               file=sys.stderr)
         code = 2
     except ValueError as err:  # rclpy refusing a parameter override (e.g. `key: []`)
-        print(f"{name}: error: {err}{empty_lists(ros_args)}", file=sys.stderr)
+        hint = empty_lists(ros_args)
+        print(f"{name}: error: {err}" + (f" ({hint})" if hint else ""), file=sys.stderr)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -126,17 +126,14 @@ def make_node():
             self.worker = Worker("render", self.step, self.health).start()
 
         # ------------------------------------------------------------ input
-        def _convert(self, kind: str, fn, msg, topic: str, stream: str | None = None):
-            """``fn(msg, topic)``, or None if it refuses the message: problem ``bad_<kind>``,
-            and the stage's input ``stream`` it feeds (if any) arrives but is refused."""
+        def _convert(self, stream: str, fn, msg, topic: str):
+            """``fn(msg, topic)``, or None if it refuses the message: problem
+            ``bad_<stream>``, and input ``stream`` arrives but is refused."""
             try:
                 return fn(msg, topic)
             except ValueError as err:
-                text = f"{kind} message skipped: {err}"
-                if stream is None:
-                    self.health.problem(f"bad_{kind}", text)
-                else:
-                    self.health.refuse(stream, f"bad_{kind}", text, str(err))
+                self.health.refuse(stream, f"bad_{stream}", f"{stream} message skipped: {err}",
+                                   str(err))
                 return None
 
         def _offer(self, stream: str, stamp: int, value) -> None:
@@ -177,19 +174,18 @@ def make_node():
 
         def on_color(self, msg) -> None:
             self._image("color", msg, self._convert("color", msgconv.rgb_from_image, msg,
-                                                    self.topics.color, "color"))
+                                                    self.topics.color))
 
         def on_depth(self, msg) -> None:
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id
             self._image("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
-                                                    self.topics.depth, "depth"))
+                                                    self.topics.depth))
 
         def on_pose(self, msg) -> None:
             if self.pub_pose is not None:
                 return  # our own poses (tf/odometry) echoed back
-            pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose,
-                                 "pose")
+            pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose)
             if pose is None:
                 return
             frame = msg.header.frame_id.lstrip("/")
@@ -214,8 +210,7 @@ def make_node():
         def on_info(self, msg) -> None:
             intr = self._convert(
                 "camera_info", lambda m, t: msgconv.camera_info_to_intrinsics(
-                    m, t, self.topics.distortion), msg, self.topics.camera_info,
-                "camera_info")
+                    m, t, self.topics.distortion), msg, self.topics.camera_info)
             if intr is not None:
                 self.stage.offer_info(intr)
 
@@ -239,7 +234,7 @@ def make_node():
                                    reason)
                 return
             arr = self._convert("embedding", msgconv.image_to_array, msg,
-                                self.topics.embedding, "embedding")
+                                self.topics.embedding)
             if arr is None:
                 return
             arr = arr[:, :, None] if arr.ndim == 2 else arr

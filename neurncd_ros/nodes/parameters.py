@@ -50,20 +50,20 @@ def declare_config(node: Any) -> config_mod.Config:
              for spec in section_specs}
     values = {}
     for key, default in defaults.items():
-        spec = specs.get(key)
+        spec = specs[key]  # the schema names every parameter of the defaults
         if node.has_parameter(key):  # given with --params-file / -p: declared by rclpy
             value = node.get_parameter(key)
             # The value stays as given (the schema checks its type below); only the
             # descriptor changes.
-            node.set_descriptor(key, _read_only(key, spec, value.type_.value))
+            node.set_descriptor(key, _read_only(spec, value.type_.value))
             value = value.value
         elif isinstance(default, list) and not default:
             # An empty list default has no element type ROS could infer: declare it
             # dynamically typed, unset = default. (A parameter file's `[]` never gets here:
             # rclpy refuses it in the Node's constructor; run_node names it, empty_lists.)
-            value = node.declare_parameter(key, None, _read_only(key, spec, 0)).value
+            value = node.declare_parameter(key, None, _read_only(spec, 0)).value
         else:
-            value = node.declare_parameter(key, _ros_value(default), _read_only(key, spec)).value
+            value = node.declare_parameter(key, _ros_value(default), _read_only(spec)).value
         values[key] = default if value is None else value
     return config_mod.from_flat(values)
 
@@ -73,9 +73,9 @@ READ_ONLY_REASON = ("{key} is read-only: the node reads its configuration once, 
                     "(--ros-args --params-file FILE, or -p {key}:=VALUE)")
 
 
-def _read_only(key: str, spec: Any, type_: int | None = None) -> Any:
-    """A read-only ParameterDescriptor for schema parameter ``key`` (``spec``: its schema
-    entry), of ``type_``, a rcl_interfaces ParameterType number (None: the type
+def _read_only(spec: Any, type_: int | None = None) -> Any:
+    """A read-only ParameterDescriptor for a schema parameter (``spec``: its schema entry),
+    of ``type_``, a rcl_interfaces ParameterType number (None: the type
     ``declare_parameter`` infers from the default; 0, not set: dynamically typed, as an
     empty list has no element type ROS could infer)."""
     from rcl_interfaces.msg import ParameterDescriptor
@@ -83,11 +83,9 @@ def _read_only(key: str, spec: Any, type_: int | None = None) -> Any:
     desc = ParameterDescriptor(read_only=True, dynamic_typing=type_ == 0)
     if type_:
         desc.type = type_
-    if spec is not None:
-        desc.description = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
-        desc.additional_constraints = spec.allowed() + "; "
-    desc.additional_constraints += ("read once, at start: restart the node with "
-                                    "--params-file / -p to change it")
+    desc.description = spec.doc + (f" [{spec.unit}]" if spec.unit else "")
+    desc.additional_constraints = (spec.allowed() + "; read once, at start: restart the "
+                                   "node with --params-file / -p to change it")
     return desc
 
 
@@ -200,8 +198,8 @@ def empty_lists(ros_args: list[str]) -> str:
               and arg.replace(" ", "").endswith(":=[]")]
     if not found:
         return ""
-    return (f" ({', '.join(sorted(found))}: ROS cannot type an empty list; leave the "
-            "key out to keep its default)")
+    return (f"{', '.join(sorted(found))}: ROS cannot type an empty list; leave the key out "
+            "to keep its default")
 
 
 def ros_args_error(err: Exception) -> str:

@@ -60,8 +60,7 @@ class EmbeddingStage:
                               cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size),
                               on_anomaly=sync_reporter(self.health),
                               max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
-        # The width the network runs at (0 = unknown: a backbone without ``input_size``).
-        self.input_width = int((getattr(backbone, "input_size", None) or (0, 0))[0])
+        self.input_width = int(backbone.input_size[0])  # the width the network runs at
         self._lock = threading.Lock()
         self._latest: tuple[int, np.ndarray, np.ndarray] | None = None
         self._last_stamp: int | None = None
@@ -118,7 +117,7 @@ class EmbeddingStage:
         h, w = depth.shape
         s = self.cfg.output_scale
         if s == 0.0:  # at the backbone's resolution, at most the frame's
-            s = self.input_width / w if 0 < self.input_width < w else 1.0
+            s = self.input_width / w if self.input_width < w else 1.0
         # The network's output interpolated once, to the published size (a resize of the
         # frame-size embedding after it would cost a second pass, and OpenCV's area
         # resize refuses more than 4 channels at a scale that is no integer ratio).
