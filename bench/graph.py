@@ -14,7 +14,10 @@ Figures (bench/results/graph.json; shares are fractions, mIoU percent):
 ``label_rate_hz`` (labels per second between the first label and the end of
 the bag), ``latency_median_s``, ``latency_p95_s``, ``keyframes_labelled_share``
 (keyframes whose label arrived by the end of the bag + 10 s),
-``frames_labelled_share``, ``peak_rss_gb_all_nodes`` (largest sum of the nodes'
+``frames_labelled_share``, ``mapper_frames_paired`` and ``mapper_problems`` (from
+the mapper's exit line: frames whose embedding met its colour, depth and pose, and
+its problems by kind, e.g. ``unpaired`` embeddings whose inputs DDS lost),
+``peak_rss_gb_all_nodes`` (largest sum of the nodes'
 resident memory, sampled every 0.25 s), ``cpu_share_per_node`` (CPU seconds /
 wall seconds), ``mapper_iterations_per_s``, ``shutdown_s`` per node (SIGINT to
 exit), ``online_miou_*`` and ``offline_miou_*``, and ``machine_probe_ms`` (the
@@ -51,6 +54,7 @@ machine probe) and the medians per value.
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import os
 import signal
@@ -245,10 +249,13 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
     with np.load(str(rec_out) + ".npz") as z:
         images = {int(k): z[k] for k in z.files}
     text = (work / "bringup.log").read_text()
-    iterations, pose_summary = 0, None
+    iterations, pose_summary, paired, problems = 0, None, None, None
     for line in text.splitlines():
         if "[mapper]" in line and "iterations" in line and "frames paired" in line:
             iterations = int(line.split("iterations ")[1].split(",")[0])
+            paired = int(line.split("frames paired ")[1].split(",")[0])
+            if ", problems " in line:
+                problems = ast.literal_eval(line.split(", problems ", 1)[1].split("; ")[0])
             if "; pose source" in line:
                 pose_summary = line.split("; pose source", 1)[1].strip(" :")
     return {"rec": rec, "images": images, "peak_rss_gb": peak, "wall_s": wall,
@@ -256,7 +263,8 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
             "cpu_share": {n: round(cpu[n] / max(last_seen[n] - first_seen[n], 1e-3), 3)
                           for n in cpu},
             "shutdown_s": {n: round(v, 2) for n, v in shutdown_s.items()},
-            "mapper_iterations": iterations, "pose_summary": pose_summary}
+            "mapper_iterations": iterations, "pose_summary": pose_summary,
+            "mapper_frames_paired": paired, "mapper_problems": problems}
 
 
 def score(frames: dict, labels: dict) -> dict:
@@ -338,6 +346,8 @@ def live_run(bag: Path, work: Path, params: list[str], frames: dict, seed: int,
         "cpu_share_per_node": live["cpu_share"],
         "shutdown_s": live["shutdown_s"],
         "mapper_iterations": live["mapper_iterations"],
+        "mapper_frames_paired": live["mapper_frames_paired"],
+        "mapper_problems": live["mapper_problems"],
         "mapper_iterations_per_s": round(live["mapper_iterations"] / max(
             (n_frames / 30.0), 1e-3), 2),
         "live_wall_s": round(live["wall_s"], 1),
@@ -482,8 +492,9 @@ def main() -> None:
           f"(machine probe {res['machine_probe_ms']} ms):")
     for k in ("label_rate_hz", "latency_median_s", "latency_p95_s", "probe_scale",
               "label_rate_hz_at_probe_40ms", "latency_median_s_at_probe_40ms",
-              "latency_p95_s_at_probe_40ms", "keyframes_labelled_share",
-              "frames_labelled_share", "peak_rss_gb_all_nodes", "cpu_share_per_node",
+              "latency_p95_s_at_probe_40ms", "keyframes", "keyframes_labelled_share",
+              "frames_labelled_share", "mapper_frames_paired", "mapper_problems",
+              "peak_rss_gb_all_nodes", "cpu_share_per_node",
               "mapper_iterations_per_s", "shutdown_s", "online_miou_all", "online_miou_known",
               "online_miou_novel", "offline_miou_all", "offline_miou_known",
               "offline_miou_novel", "poses", "mapper_pose_summary"):

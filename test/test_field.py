@@ -410,6 +410,43 @@ def test_bounds_grow_and_keep_what_was_learnt(synthetic):
     assert np.isfinite(m.step(1)["total"])
 
 
+def test_a_keyframe_does_not_wait_for_a_training_step_to_grow_the_box(synthetic):
+    """While a step holds the model, a keyframe past the box is admitted at once; the
+    grown box waits and is applied before the next batch, and before a render."""
+    import threading
+
+    m = _fit_synthetic(synthetic[:4], 10)
+    f = synthetic[1]
+    lo, hi = m.bounds
+    far = Frame(f.stamp_ns + 1, f.rgb, f.depth, f.pose.copy(), f.intrinsics)
+    far.pose[0, 3] += 0.5 * (hi - lo)[0]
+    emb = _gt_embedding(f.semantic, np.random.default_rng(0))
+    admitted, done = [], threading.Event()
+    with m._lock:  # a training step under way, as the background thread holds it
+        worker = threading.Thread(target=lambda: (admitted.append(m.add_keyframe(far, emb)),
+                                                  done.set()))
+        worker.start()
+        assert done.wait(60), "add_keyframe waited for the step"
+        assert admitted == [True] and m._pending_box is not None
+        assert np.array_equal(m._lo, lo) and np.array_equal(m._hi, hi)  # not applied yet
+    worker.join()
+    assert np.isfinite(m.step(1)["total"])  # applies the box, then draws the batch
+    assert m._pending_box is None
+    lo2, hi2 = m.bounds
+    assert hi2[0] > hi[0] and np.all(lo2 <= lo) and np.all(hi2 >= hi)
+    # A render applies a pending box too, and a second growth merges with the first.
+    with m._lock:
+        far2 = Frame(f.stamp_ns + 2, f.rgb, f.depth, far.pose.copy(), f.intrinsics)
+        far2.pose[0, 3] += 0.5 * (hi2 - lo2)[0]
+        t = threading.Thread(target=m.add_keyframe, args=(far2, emb))
+        t.start()
+        t.join(60)
+        assert not t.is_alive() and m._pending_box is not None
+    out = m.render(far2.pose, f.intrinsics, 15, 20)
+    assert m._pending_box is None and m.bounds[1][0] > hi2[0]
+    assert np.isfinite(out["embedding"]).all()
+
+
 def test_reference_backend_smoke(synthetic):
     m = Mapper(MapperConfig(backend="reference"), classes.NUM_KNOWN,
                backend_cfg=ReferenceConfig(rays_per_iteration=32, coarse_samples=16,

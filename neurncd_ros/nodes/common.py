@@ -153,6 +153,11 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             return 2
     for module in preload:
         importlib.import_module(module)
+    # The process's threads (executor, stage worker, the field's training) hand the GIL
+    # over every 1 ms instead of Python's 5 ms: a callback waits for the GIL several
+    # times (rcl_wait, the take, the thread pool), and at 5 ms a 640x480 camera's 100
+    # messages a second fell a second behind beside a busy worker, and DDS dropped them.
+    sys.setswitchinterval(0.001)
     ensure_dds_profile()
     import cv2
     cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node

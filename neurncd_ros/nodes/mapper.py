@@ -13,11 +13,20 @@ Services ~/save_map and ~/reset (std_srvs/Trigger); the map is saved every
 Poses come from the pose topic, /tf or RGB-D odometry (``pose_source``, the
 engine's :class:`PoseStage`); tf and odometry poses are published on the pose
 topic, and a new odometry map segment restarts the field.
+
+The subscription callbacks only convert a message and queue it: an intake thread
+pairs the inputs and admits keyframes, in arrival order. Admitting a keyframe can
+take a second (the field's box grows between two training steps, and the niced
+training thread holds the model meanwhile; the extent of a 640x480 depth), and a
+callback that long made DDS drop a second of a 30 Hz camera from the input queues
+(``queue_size``), so a third of the embeddings found no colour, depth or pose.
 """
 
 from __future__ import annotations
 
+import collections
 import os
+import threading
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, latched_qos,
@@ -31,7 +40,11 @@ DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and pub
 
 
 # Imported by run_node before rclpy (torch, scipy first), once the signal handlers are in.
-PRELOAD = ("torch", "neurncd_ros.core.engine.mapping", "neurncd_ros.core.engine.offline",
+# torch imports torch._dynamo (for Adam) and sympy (symbolic_shapes, for the field's
+# parameters) lazily when the first embedding builds the field: 3 s holding the GIL then,
+# while the camera's frames come in, so they are imported here.
+PRELOAD = ("torch", "torch._dynamo", "torch.fx.experimental.symbolic_shapes",
+           "neurncd_ros.core.engine.mapping", "neurncd_ros.core.engine.offline",
            "neurncd_ros.core.field.mapper")
 
 
@@ -85,6 +98,11 @@ def make_node():
                                        f"iterations, {len(self.stage.mapper.buffer)} "
                                        "keyframes)")
             self.frame_id = self.topics.camera_frame
+            # Inputs converted by the callbacks, paired and admitted by the intake thread
+            # (module doc); the oldest goes when the thread is sync_horizon_s behind.
+            self.intake: collections.deque = collections.deque(
+                maxlen=len(self.stage.STREAMS) * self.stage.sync.capacity)
+            self._intake_lock = threading.Lock()  # an intake job, or a map reset
             q = sensor_qos(self.node_cfg.queue_size)
             self.create_subscription(Image, self.topics.color, self.on_color, q)
             self.create_subscription(Image, self.topics.depth, self.on_depth, q)
@@ -124,8 +142,28 @@ def make_node():
             if self.spec is not None:
                 self.pub_spec.publish(String(data=self.spec.to_json()))
             self.worker = Worker("render", self.step, self.health).start()
+            self.intake_worker = Worker("intake", self._intake_step, self.health).start()
 
         # ------------------------------------------------------------ input
+        def _queue(self, job) -> None:
+            """Hand ``job`` (no arguments) to the intake thread; called by the callbacks."""
+            if len(self.intake) == self.intake.maxlen:
+                self.health.problem("intake_overflow", "the mapper's intake is "
+                                    f"{self.intake.maxlen} messages behind its inputs: the "
+                                    "oldest is dropped (the machine is too slow for the "
+                                    "camera's rate and size)")
+            self.intake.append(job)
+            self.intake_worker.notify()
+
+        def _intake_step(self, cancel) -> bool:
+            try:
+                job = self.intake.popleft()
+            except IndexError:
+                return False
+            with self._intake_lock:
+                job()
+            return True
+
         def _convert(self, stream: str, fn, msg, topic: str):
             """``fn(msg, topic)``, or None if it refuses the message: problem
             ``bad_<stream>``, and input ``stream`` arrives but is refused."""
@@ -166,21 +204,21 @@ def make_node():
                     self.stage.mapper.reset()
 
         def _image(self, stream: str, msg, value) -> None:
-            if value is None:
-                return
             self._offer(stream, header_ns(msg), value)
             self._offer_poses(self.poses.offer_image(stream, header_ns(msg), value,
                                                      self.stage.intrinsics))
 
         def on_color(self, msg) -> None:
-            self._image("color", msg, self._convert("color", msgconv.rgb_from_image, msg,
-                                                    self.topics.color))
+            value = self._convert("color", msgconv.rgb_from_image, msg, self.topics.color)
+            if value is not None:
+                self._queue(lambda: self._image("color", msg, value))
 
         def on_depth(self, msg) -> None:
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id
-            self._image("depth", msg, self._convert("depth", msgconv.depth_from_image, msg,
-                                                    self.topics.depth))
+            value = self._convert("depth", msgconv.depth_from_image, msg, self.topics.depth)
+            if value is not None:
+                self._queue(lambda: self._image("depth", msg, value))
 
         def on_pose(self, msg) -> None:
             if self.pub_pose is not None:
@@ -197,9 +235,12 @@ def make_node():
                                  f"'{frame}' (topics.world_frame is "
                                  f"'{self.topics.world_frame}'): the keyframe and view "
                                  f"poses are published in '{frame}'")
-            self._offer_poses(self.poses.offer_pose(header_ns(msg), pose))
+            self._queue(lambda: self._offer_poses(self.poses.offer_pose(header_ns(msg), pose)))
 
         def on_tf(self, msg, static: bool) -> None:
+            self._queue(lambda: self._tf(msg, static))
+
+        def _tf(self, msg, static: bool) -> None:
             try:
                 poses = self.poses.offer_tf(msg, static)
             except ValueError as err:
@@ -212,7 +253,7 @@ def make_node():
                 "camera_info", lambda m, t: msgconv.camera_info_to_intrinsics(
                     m, t, self.topics.distortion), msg, self.topics.camera_info)
             if intr is not None:
-                self.stage.offer_info(intr)
+                self._queue(lambda: self.stage.offer_info(intr))
 
         def on_spec(self, msg) -> None:
             try:
@@ -245,7 +286,11 @@ def make_node():
                                    str(err))
                 return
             stamp = header_ns(msg)
-            self._offer("embedding", stamp, EmbeddingRecord(stamp, arr, self.spec))
+            record = EmbeddingRecord(stamp, arr, self.spec)
+            self._queue(lambda: self._embedding(stamp, record))
+
+        def _embedding(self, stamp: int, record) -> None:
+            self._offer("embedding", stamp, record)
             self._offer_poses(self.poses.offer_embedding(stamp, self.stage.intrinsics))
 
         def on_labels(self, msg) -> None:
@@ -282,6 +327,7 @@ def make_node():
             if not self.stage.check_training():
                 self.worker.cancel.set()  # no stale output after the field died
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
+            self.health.gauge("intake_backlog", len(self.intake))
             # Whether the embedding node is seen yet: bringup starts a bag only then.
             self.health.gauge("upstream_publishers", self.count_publishers(self.topics.embedding))
             self.health.gauge("keyframes_in_map", len(self.stage.mapper.buffer)
@@ -308,12 +354,14 @@ def make_node():
             return response
 
         def on_reset(self, request, response):
-            if self.stage.mapper is not None:
-                self.stage.mapper.reset()
+            with self._intake_lock:  # not in the middle of admitting a keyframe
+                if self.stage.mapper is not None:
+                    self.stage.mapper.reset()
             response.success, response.message = True, "map reset"
             return response
 
         def close(self) -> None:
+            self.intake_worker.stop(timeout=3.0)
             self.worker.stop(timeout=3.0)
             self.stage.stop()
             if self.node_cfg.map_path and self.stage.mapper is not None:

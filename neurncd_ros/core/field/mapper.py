@@ -207,6 +207,9 @@ class Mapper:
         self._opt = torch.optim.Adam(self.model.param_groups())
         self._lo: np.ndarray | None = None
         self._hi: np.ndarray | None = None
+        # A grown box not yet applied because a training step held the model (see
+        # _grow_bounds); applied before the next batch is drawn and before a render.
+        self._pending_box: tuple[np.ndarray, np.ndarray] | None = None
         self.bounds_clipped = False
         self._iterations = 0
         self._snap: FieldModel | None = None
@@ -219,6 +222,7 @@ class Mapper:
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         """Current scene AABB (lo, hi) in world metres, None before the first keyframe."""
+        self._apply_pending_bounds()
         with self._lock:
             return None if self._lo is None else (self._lo.copy(), self._hi.copy())
 
@@ -231,23 +235,32 @@ class Mapper:
                 self._opt.state[p] = old.state[p]
 
     def _grow_bounds(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Grow the box (backend lattice, with margin and slack) to hold [lo, hi]."""
+        """Grow the box (backend lattice, with margin and slack) to hold [lo, hi].
+
+        A backend whose box holds parameters gets its new box between two training
+        steps. If a step holds the model, the box waits in ``_pending_box`` and the
+        training thread applies it before drawing its next batch (the keyframe's rays
+        are in that batch at the earliest), so the caller never waits for a step: the
+        training thread runs at a lower priority (``train_nice``), and on a busy
+        machine a step took over a second, all of which the mapper node's intake of
+        frames then waited. Without a step under way the box is applied at once, as
+        always offline.
+        """
         lo, hi = lo - self.cfg.bounds_margin, hi + self.cfg.bounds_margin
         with self._bounds_lock:
             cell, cap = self.model.box_lattice()
-            old = None if self._lo is None else (self._lo, self._hi)
+            old = self._pending_box or (None if self._lo is None else (self._lo, self._hi))
             box, clipped = scenebox.grow(old, lo, hi, cell, cap, self.cfg.bounds_growth)
             self.bounds_clipped = self.bounds_clipped or clipped
             if box is None:
                 return
             if self.model.box_holds_parameters:  # new parameters: not during a step
-                with self._lock:
-                    self.model.set_bounds(torch.tensor(box[0], dtype=torch.float32),
-                                          torch.tensor(box[1], dtype=torch.float32),
-                                          keep=old is not None, generator=self._gen)
-                    self._rebuild_optimizer()
-                    self._lo, self._hi = box
-                    self._snap = None
+                self._pending_box = box
+                if self._lock.acquire(blocking=False):
+                    try:
+                        self._apply_box()
+                    finally:
+                        self._lock.release()
             else:
                 # Only near/far change; a reader mixing old and new corners still gets a
                 # valid box (the box only grows), so no need to wait for a slow step.
@@ -281,6 +294,25 @@ class Mapper:
         if min_iterations is None:
             min_iterations = self.cfg.min_iterations_before_publish
         return self.buffer.ready(min_iterations)
+
+    def _apply_box(self) -> None:
+        """Give the model the pending box; with ``_bounds_lock`` and ``_lock`` held."""
+        box, self._pending_box = self._pending_box, None
+        if box is None:
+            return
+        self.model.set_bounds(torch.tensor(box[0], dtype=torch.float32),
+                              torch.tensor(box[1], dtype=torch.float32),
+                              keep=self._lo is not None, generator=self._gen)
+        self._rebuild_optimizer()
+        self._lo, self._hi = box
+        self._snap = None
+
+    def _apply_pending_bounds(self) -> None:
+        """Apply a box :meth:`_grow_bounds` left pending (waits for a step under way)."""
+        with self._bounds_lock:
+            if self._pending_box is not None:
+                with self._lock:
+                    self._apply_box()
 
     # ------------------------------------------------------------ training
     def _batch(self) -> RayBatch:
@@ -321,7 +353,11 @@ class Mapper:
         for _ in range(n):
             if len(self.buffer) == 0:
                 break
-            batch = self._batch()
+            with self._bounds_lock:  # the box holds every keyframe the batch may draw
+                if self._pending_box is not None:
+                    with self._lock:
+                        self._apply_box()
+                batch = self._batch()
             with self._lock:
                 if self._lo is None:  # reset() raced with this step
                     break
@@ -413,6 +449,7 @@ class Mapper:
 
     # ------------------------------------------------------------ rendering
     def _snapshot(self) -> tuple[FieldModel, np.ndarray, np.ndarray]:
+        self._apply_pending_bounds()
         with self._lock:
             if self._lo is None:
                 raise ValueError("nothing is mapped yet: add a keyframe before rendering")
@@ -525,6 +562,7 @@ class Mapper:
     def save(self, path: str | Path) -> None:
         """Weights, optimiser, bounds, the keyframe buffer and every config section the map
         was built with (mapper, keyframes, backend), so training can resume."""
+        self._apply_pending_bounds()
         with self._lock:
             state = {
                 "version": SAVE_VERSION, "channels": self.channels,

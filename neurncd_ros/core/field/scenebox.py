@@ -27,7 +27,8 @@ def keyframe_extent(frame: Frame, max_depth: float) -> tuple[np.ndarray, np.ndar
         d = camera_directions(intr, u, v) * 3.0
         pts = d @ frame.pose[:3, :3].T + frame.pose[:3, 3]
     pts = np.concatenate([pts, frame.pose[None, :3, 3]])
-    return np.percentile(pts, 1, axis=0), np.percentile(pts, 99, axis=0)
+    lo, hi = np.percentile(pts, [1, 99], axis=0)  # one selection for both
+    return lo, hi
 
 
 def grow(box: tuple[np.ndarray, np.ndarray] | None, lo: np.ndarray, hi: np.ndarray,
