@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -435,6 +436,32 @@ def test_mapper_stage_gives_discovery_the_fused_depth(cfg, backbone, frames):
     ok = (f.depth > 0) & (exact > 0)
     err = lambda d: float(np.mean(np.abs(d[ok] - exact[ok])))  # noqa: E731
     assert err(fused.depth) < 0.85 * err(f.depth), (err(fused.depth), err(f.depth))
+
+
+def test_mapper_stage_fuses_a_wide_frame_at_its_work_width(cfg, backbone, frames):
+    """Frames wider than mapper_node.work_width are fused at that width (the frame's
+    aspect): the embedding comes at the working size, the fused depth at the frame's size
+    (nearest), still closer to the exact depth than the measurement at that size; a
+    work_width not below the frame's width changes nothing."""
+    clean_cfg = synth.SynthConfig(width=96, height=72, depth_noise="none")
+    views = {}
+    for work in (0, 96, 48):
+        st = _stage(cfg, fallback="keyframes", work_width=work)
+        jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+        views[work] = st.render_view(jobs[-1])
+    f = jobs[-1].frame
+    for name in ("embedding", "entropy", "depth"):
+        assert np.array_equal(getattr(views[96], name), getattr(views[0], name)), name
+    wide = views[48]
+    assert wide.embedding.shape[:2] == (36, 48) and wide.entropy.shape == (36, 48)
+    assert wide.depth.shape == f.depth.shape and wide.depth.dtype == np.float32
+    coarse = cv2.resize(cv2.resize(f.depth, (48, 36), interpolation=cv2.INTER_NEAREST),
+                        (96, 72), interpolation=cv2.INTER_NEAREST)
+    assert np.array_equal(wide.depth > 0, coarse > 0)  # the working grid's holes, no more
+    exact = next(synth.frames_at(1002, [frames.index(f)], clean_cfg)).depth
+    ok = (coarse > 0) & (exact > 0)
+    err = lambda d: float(np.mean(np.abs(d[ok] - exact[ok])))  # noqa: E731
+    assert err(wide.depth) < 0.9 * err(coarse), (err(wide.depth), err(coarse))
 
 
 def test_disagreement_weight_adds_the_views_disagreement_to_the_entropy(cfg, backbone, frames):

@@ -86,6 +86,15 @@ class MapperNodeConfig:
                                 "backbone's resolution for borders and small objects: tuning "
                                 "seeds 500-509, all / known / novel 77.58 / 85.39 / 58.06 at "
                                 "1, 77.06 / 84.92 / 57.55 at 0.5", lo=0.1, hi=1.0)
+    work_width: int = param(640, "compute the views of frames wider than this at this width "
+                            "(the frame's aspect kept): the keyframe fusion of the embedding "
+                            "and of the depth, whose cost grows with the pixels; the fused "
+                            "depth is published at the frame's size (nearest), so the labels "
+                            "are too. Discovery labels at 320 wide whatever it is given "
+                            "(discovery_node.work_width); a 1280x720 camera fused at its "
+                            "full size kept the mapper so busy on 2 cores that labels "
+                            "came a minute late. render_scale applies on top of it; 0 = "
+                            "the frame's own width", lo=0, hi=8192, unit="px")
     max_in_flight: int = param(2, "views published and not yet labelled before the "
                                "renderer waits for discovery", lo=1, hi=100)
     in_flight_timeout_s: float = param(5.0, "a view not labelled within this is no longer "
@@ -470,22 +479,32 @@ class MapperStage:
         if not self.check_training():
             raise RuntimeError(self.health.error or "the mapper stage has failed")
         f, mapper, spec = job.frame, self.mapper, job.embedding.spec
+        full_h, full_w = f.depth.shape
+        # The working frame: the depth fusion's (at most work_width wide)...
+        work = self.cfg.work_width
+        fuse_w = work if 0 < work < full_w else full_w
+        fuse_h = max(1, round(full_h * fuse_w / full_w))
+        fuse_intr = f.intrinsics.scaled(fuse_w, fuse_h) if fuse_w != full_w else f.intrinsics
+        fuse_depth_in = resize_to(f.depth, fuse_h, fuse_w, cv2.INTER_NEAREST)
+        # ... and the view's, render_scale of it.
         s = self.cfg.render_scale
-        h, w = max(1, round(f.intrinsics.height * s)), max(1, round(f.intrinsics.width * s))
+        h, w = max(1, round(fuse_h * s)), max(1, round(fuse_w * s))
         backbone = resize_to(job.embedding.embedding.astype(np.float32), h, w)
         # The view's geometry, once for the coverage, the fusion and the rays.
         intr = f.intrinsics.scaled(w, h)
-        depth = resize_to(f.depth, h, w, cv2.INTER_NEAREST)
+        depth = (fuse_depth_in if (h, w) == (fuse_h, fuse_w)
+                 else resize_to(f.depth, h, w, cv2.INTER_NEAREST))
         fuse = self.cfg.fallback == "keyframes"
         kfs = (self._nearest_keyframes(f)
                if self.cfg.fallback != "none" or self.cfg.depth_fusion else [])
         views = kfs + self._recent_views(f) if fuse or self.cfg.depth_fusion else kfs
         view_depth, seen, tol = None, None, self.cfg.coverage_depth_tolerance
-        if self.cfg.depth_fusion:  # full size: discovery cuts its segments on it
-            seen = view_visibility(f.depth, f.intrinsics, f.pose, views, tol)
-            view_depth, _ = fuse_depth(f.depth, f.intrinsics, f.pose, views, tol, seen)
+        if self.cfg.depth_fusion:  # discovery cuts its segments on it
+            seen = view_visibility(fuse_depth_in, fuse_intr, f.pose, views, tol)
+            view_depth, _ = fuse_depth(fuse_depth_in, fuse_intr, f.pose, views, tol, seen)
+            view_depth = resize_to(view_depth, full_h, full_w, cv2.INTER_NEAREST)
         points, mask = backproject(depth, intr, f.pose) if views else (None, None)
-        seen = seen if depth is f.depth else None  # the full-size test, at render_scale 1
+        seen = seen if depth is fuse_depth_in else None  # the same test, at render_scale 1
         weight = (self.field_weight(kfs, points, mask, h, w, seen)
                   if self.cfg.fallback != "none" else np.ones((h, w), np.float32))
         mean_h = None
