@@ -410,6 +410,31 @@ def test_bounds_grow_and_keep_what_was_learnt(synthetic):
     assert np.isfinite(m.step(1)["total"])
 
 
+def test_keyframe_extent_reads_a_large_frame_subsampled_to_the_same_box():
+    """A 1280x720 frame's extent is read from every 4th pixel: the same 1st-99th
+    percentile box as from every pixel within a centimetre; a 320x240 frame is read
+    whole (the same box as before the subsampling)."""
+    from neurncd_ros.core.field import scenebox
+
+    big = next(synth.frames_at(2, [10], synth.SynthConfig(width=1280, height=720)))
+    step = np.ceil(np.sqrt(big.depth.size / scenebox.EXTENT_PIXELS))
+    assert step == 4
+    lo, hi = scenebox.keyframe_extent(big, 8.0)
+    # Every pixel, as keyframe_extent read it before (the reference here).
+    d = np.where(big.depth <= 8.0, big.depth, 0.0).astype(np.float32)
+    pts, _ = scenebox.backproject(d, big.intrinsics, big.pose)
+    pts = np.concatenate([pts, big.pose[None, :3, 3]])
+    assert np.abs(lo - np.percentile(pts, 1, axis=0)).max() < 0.01
+    assert np.abs(hi - np.percentile(pts, 99, axis=0)).max() < 0.01
+    small = next(synth.frames_at(2, [10], synth.SynthConfig(width=320, height=240)))
+    d = np.where(small.depth <= 8.0, small.depth, 0.0).astype(np.float32)
+    pts, _ = scenebox.backproject(d, small.intrinsics, small.pose)
+    pts = np.concatenate([pts, small.pose[None, :3, 3]])
+    lo, hi = scenebox.keyframe_extent(small, 8.0)
+    assert np.array_equal(lo, np.percentile(pts, 1, axis=0))
+    assert np.array_equal(hi, np.percentile(pts, 99, axis=0))
+
+
 def test_a_keyframe_does_not_wait_for_a_training_step_to_grow_the_box(synthetic):
     """While a step holds the model, a keyframe past the box is admitted at once; the
     grown box waits and is applied before the next batch, and before a render."""

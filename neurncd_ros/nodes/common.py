@@ -162,7 +162,7 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
     import cv2
     cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node
     import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
     from rclpy.utilities import remove_ros_args
 
@@ -179,7 +179,11 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
     try:
         if not shutdown.requested.is_set():  # a signal during rclpy.init: build nothing
             node = factory()
-            executor = MultiThreadedExecutor(num_threads=3)
+            # One thread: a node's callbacks are in its one mutually exclusive group, so a
+            # MultiThreadedExecutor ran them one at a time anyway, through a thread pool
+            # whose handoffs each waited for the GIL beside the node's busy threads: at
+            # 1280x720 the mapper took half the camera's messages (bench/graph.py).
+            executor = SingleThreadedExecutor()
             executor.add_node(node)
             done = getattr(node, "done", None)
             while (rclpy.ok() and not shutdown.requested.is_set()
