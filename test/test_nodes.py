@@ -198,6 +198,7 @@ def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, 
     assert code == 0, text[-2000:]
     assert f"{sig}: shutting down" in text or node_name == "replay", text[-2000:]
     assert "Traceback" not in text, text[-2000:]
+    assert f"[{node_name}]: ready" in text, text[-2000:]  # a user sees it is up
 
 
 @pytest.mark.parametrize("args, expect", [

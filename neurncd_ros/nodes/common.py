@@ -185,6 +185,10 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             # 1280x720 the mapper took half the camera's messages (bench/graph.py).
             executor = SingleThreadedExecutor()
             executor.add_node(node)
+            topics = getattr(node, "topics", None)
+            node.get_logger().info(
+                "ready" + (f": state, counts and problems on {topics.diagnostics} once a "
+                           "second" if topics is not None else ""))
             done = getattr(node, "done", None)
             while (rclpy.ok() and not shutdown.requested.is_set()
                    and not (done and done.is_set())):
