@@ -296,23 +296,23 @@ class Mapper:
         return self.buffer.ready(min_iterations)
 
     def _apply_box(self) -> None:
-        """Give the model the pending box; with ``_bounds_lock`` and ``_lock`` held."""
-        box, self._pending_box = self._pending_box, None
-        if box is None:
+        """Give the model the pending box, if any; with ``_bounds_lock`` held. Takes the
+        model (``_lock``: waits for a step under way) only when a box is pending."""
+        if self._pending_box is None:
             return
-        self.model.set_bounds(torch.tensor(box[0], dtype=torch.float32),
-                              torch.tensor(box[1], dtype=torch.float32),
-                              keep=self._lo is not None, generator=self._gen)
-        self._rebuild_optimizer()
-        self._lo, self._hi = box
-        self._snap = None
+        with self._lock:
+            box, self._pending_box = self._pending_box, None
+            self.model.set_bounds(torch.tensor(box[0], dtype=torch.float32),
+                                  torch.tensor(box[1], dtype=torch.float32),
+                                  keep=self._lo is not None, generator=self._gen)
+            self._rebuild_optimizer()
+            self._lo, self._hi = box
+            self._snap = None
 
     def _apply_pending_bounds(self) -> None:
         """Apply a box :meth:`_grow_bounds` left pending (waits for a step under way)."""
         with self._bounds_lock:
-            if self._pending_box is not None:
-                with self._lock:
-                    self._apply_box()
+            self._apply_box()
 
     # ------------------------------------------------------------ training
     def _batch(self) -> RayBatch:
@@ -354,9 +354,7 @@ class Mapper:
             if len(self.buffer) == 0:
                 break
             with self._bounds_lock:  # the box holds every keyframe the batch may draw
-                if self._pending_box is not None:
-                    with self._lock:
-                        self._apply_box()
+                self._apply_box()
                 batch = self._batch()
             with self._lock:
                 if self._lo is None:  # reset() raced with this step
