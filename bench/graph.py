@@ -39,6 +39,15 @@ estimated by the same odometry).
     .venv/bin/python bench/graph.py --poses odometry
     .venv/bin/python bench/graph.py --sweep mapper.train_nice=0,10 --repeat 5
     .venv/bin/python bench/graph.py --size 640x480   # graph_640x480.json
+    .venv/bin/python bench/graph.py --frames 5400 --no-offline   # graph_n5400.json, 3 min
+
+``--frames N`` other than 300 plays a longer (or shorter) walk of the same scene and writes
+``graph_n<N>.json`` / ``.png`` (after any ``_odometry`` / ``_<W>x<H>``), so the 300-frame
+records stay: ``--frames 5400`` is three minutes, as a user replays a NYUv2 sequence. Every
+run also records ``windows`` (per 30 s of the replay: labels of its frames, their latency
+median and p95, each node's resident memory at the window's end) and ``rss_gb_series``
+(every node's resident memory every 5 s), so a long bag shows whether latency or memory
+drift; its picture adds them as a third panel.
 
 ``--size WxH`` plays the same scene at another frame size (640x480 is the size of
 NYUv2, TUM and Replica): the embedding, the views and discovery cost about as the
@@ -223,10 +232,11 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
     pids: dict[str, int] = {}
     peak, cpu, first_seen, last_seen = 0.0, {}, {}, {}
     shutdown_s: dict[str, float] = {}
+    series: list[tuple[float, dict[str, float]]] = []  # (monotonic time, node -> RSS GB)
     stop_sent = None
     while bringup.poll() is None:
         pids.update(children(bringup.pid))
-        total = 0.0
+        total, sample = 0.0, {}
         for name, pid in pids.items():
             r = rss_and_cpu(pid)
             now = time.monotonic()
@@ -235,10 +245,13 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
                     shutdown_s[name] = now - stop_sent
                 continue
             total += r[0]
+            sample[name] = r[0]
             cpu[name] = r[1]
             first_seen.setdefault(name, now)
             last_seen[name] = now
         peak = max(peak, total)
+        if sample and stop_sent is None and (not series or now - series[-1][0] >= 1.0):
+            series.append((now, sample))
         if stop_sent is None and "stopping" in (work / "bringup.log").read_text():
             stop_sent = time.monotonic()
         time.sleep(0.25)
@@ -264,7 +277,7 @@ def run_live(bag: Path, work: Path, extra: list[str]) -> dict:
                           for n in cpu},
             "shutdown_s": {n: round(v, 2) for n, v in shutdown_s.items()},
             "mapper_iterations": iterations, "pose_summary": pose_summary,
-            "mapper_frames_paired": paired, "mapper_problems": problems}
+            "mapper_frames_paired": paired, "mapper_problems": problems, "rss_series": series}
 
 
 def score(frames: dict, labels: dict) -> dict:
@@ -286,7 +299,11 @@ def picture(depth: dict, labels: dict, keyframes: set, res: dict, path: Path) ->
     import matplotlib.pyplot as plt
 
     t0 = min(depth.values())
-    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [3, 1]})
+    series = res.get("rss_gb_series") or []
+    long_run = len(res.get("windows", [])) > 1
+    fig, axes = plt.subplots(1, 3 if long_run else 2, figsize=(16 if long_run else 12, 4),
+                             gridspec_kw={"width_ratios": [3, 1, 2] if long_run else [3, 1]})
+    a, b = axes[0], axes[1]
     a.plot([t - t0 for t in depth.values()], [0] * len(depth), "|", color="0.6",
            label="frame arrives")
     for s, t in labels.items():
@@ -308,6 +325,20 @@ def picture(depth: dict, labels: dict, keyframes: set, res: dict, path: Path) ->
     b.axvline(res["latency_p95_s"], color="tab:red", ls=":", label="p95")
     b.set_xlabel("latency (s)")
     b.legend(fontsize=8)
+    if long_run:  # memory of each node over the replay, and the latency per window
+        c = axes[2]
+        for node in sorted({k for _, r in series for k in r}):
+            c.plot([t for t, r in series if node in r], [r[node] for _, r in series if node in r],
+                   label=f"{node} RSS")
+        c.set_xlabel("time since the first frame (s)")
+        c.set_ylabel("resident memory (GB)")
+        c2 = c.twinx()
+        win = [w for w in res["windows"] if w["latency_median_s"] is not None]
+        c2.plot([w["start_s"] + WINDOW_S / 2 for w in win], [w["latency_median_s"] for w in win],
+                "k--o", label="latency median per window")
+        c2.set_ylabel("latency (s)")
+        c.legend(loc="upper left", fontsize=8)
+        c2.legend(loc="lower right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -360,9 +391,40 @@ def live_run(bag: Path, work: Path, params: list[str], frames: dict, seed: int,
     for k in ("latency_median_s", "latency_p95_s"):
         if res[k] is not None:
             res[f"{k}_at_probe_40ms"] = round(res[k] / scale, 3)
+    res["windows"] = windows(depth, labels, live["rss_series"])
+    # Every 5 s, in seconds since the replay's first frame (negative: the nodes starting).
+    t_first = min(depth.values())
+    res["rss_gb_series"] = [[round(t - t_first, 1), {k: round(v, 3) for k, v in r.items()}]
+                            for t, r in live["rss_series"][::5]]
     online = score(frames, live["images"])
     res.update({f"online_{k}": v for k, v in online.items()})
     return res, depth, labels, keyframes
+
+
+WINDOW_S = 30.0
+
+
+def windows(depth: dict, labels: dict, rss_series: list) -> list[dict]:
+    """The run in windows of :data:`WINDOW_S` of the bag's replay (by the arrival of the
+    frames): per window the labels of its frames, their latency median and p95, and each
+    node's resident memory at the window's end (the last sample in it), so that a long
+    bag shows whether latency or memory drift."""
+    t0 = min(depth.values())
+    n = int((max(depth.values()) - t0) // WINDOW_S) + 1
+    out = []
+    for w in range(n):
+        lo, hi = t0 + w * WINDOW_S, t0 + (w + 1) * WINDOW_S
+        lat = [labels[s] - t for s, t in depth.items() if lo <= t < hi and s in labels]
+        rss = [r for t, r in rss_series if t < hi]
+        out.append({
+            "start_s": w * WINDOW_S,
+            "frames": sum(lo <= t < hi for t in depth.values()),
+            "labels": len(lat),
+            "latency_median_s": round(float(np.median(lat)), 3) if lat else None,
+            "latency_p95_s": round(float(np.percentile(lat, 95)), 3) if lat else None,
+            "rss_gb": {k: round(v, 3) for k, v in rss[-1].items()} if rss else {},
+        })
+    return out
 
 
 SWEEP_KEYS = ("label_rate_hz", "latency_median_s", "latency_p95_s", "mapper_iterations_per_s",
@@ -431,11 +493,12 @@ def main() -> None:
             raise SystemExit(f"--repeat {args.repeat}: at least 1 round")
     seed = seeds.TEST[0] if args.seed is None else args.seed
     odometry = args.poses == "odometry"
+    long_run = f"_n{args.frames}" if args.frames != 300 else ""
     name = ("graph_odometry" if odometry else "graph") + (
-        f"_{size[0]}x{size[1]}" if size else "")
+        f"_{size[0]}x{size[1]}" if size else "") + long_run
     bag = make_bag(seed, args.frames, args.poses, size)
     work = Path("/tmp/neurncd_graph") / f"run_s{seed}{'_odometry' if odometry else ''}" \
-        f"{f'_{size[0]}x{size[1]}' if size else ''}"
+        f"{f'_{size[0]}x{size[1]}' if size else ''}{long_run}"
     work.mkdir(parents=True, exist_ok=True)
     frames = {f.stamp_ns: f for f in FrameReader(bag, with_poses=not odometry)}
     params = (["mapper_node.pose_source:=odometry"] if odometry else []) + args.set
@@ -499,6 +562,13 @@ def main() -> None:
               "online_miou_novel", "offline_miou_all", "offline_miou_known",
               "offline_miou_novel", "poses", "mapper_pose_summary"):
         print(f"  {k:28s} {res.get(k)}")
+    if len(res["windows"]) > 1:
+        print(f"  per {WINDOW_S:.0f} s of replay: start, labels, latency median / p95 (s), "
+              "resident GB per node")
+        for w in res["windows"]:
+            print(f"    {w['start_s']:6.0f} {w['labels']:5d} {w['latency_median_s']!s:>7s} / "
+                  f"{w['latency_p95_s']!s:>7s}  "
+                  + " ".join(f"{k} {v:.2f}" for k, v in sorted(w["rss_gb"].items())))
     print(f"wrote {RESULTS / (name + '.json')}")
 
 

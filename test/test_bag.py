@@ -14,6 +14,7 @@ from neurncd_ros.core.camera import Intrinsics, look_at
 from neurncd_ros.core.data import bag
 from neurncd_ros.core.data.bag import BagError, FrameReader
 from neurncd_ros.core.topics import Topics
+from neurncd_ros.core.sync import tf_chain, tf_root
 from neurncd_ros.core.frame import Frame
 
 torch.set_num_threads(1)
@@ -176,8 +177,12 @@ def test_tf_tree_order_and_roots():
               "optical": "camera_link", "odom": "map", "a": "b", "b": "a"}
     assert bag.tf_frames_in_tree_order(parent) == ["map", "odom", "base_link", "camera_link",
                                                    "optical", "imu", "a", "b"]
-    assert bag.tf_root(parent, "optical") == "map" and bag.tf_root(parent, "map") == "map"
-    assert bag.tf_root(parent, "b") == bag.tf_root(parent, "a") == "a"
+    assert tf_root(parent, "optical") == "map" and tf_root(parent, "map") == "map"
+    assert tf_root(parent, "b") == tf_root(parent, "a") == "a"
+    assert tf_chain(parent, "optical") == ["optical", "camera_link", "base_link", "odom", "map"]
+    # A loop (a malformed /tf) is walked once, and a frame hanging from it has its root.
+    assert tf_chain(parent, "b") == ["b", "a"]
+    assert tf_root({**parent, "c": "b"}, "c") == "a"
 
 
 def _items_without(frames, tp, drop):

@@ -174,7 +174,8 @@ def test_mapper_stage_serves_keyframes_first_then_the_newest_frame(cfg, backbone
 
 
 def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbone, frames):
-    st = _stage(cfg, mature_iterations=20, render_scale=0.5, fallback="backbone")
+    st = _stage(cfg, mature_iterations=20, render_scale=0.5, fallback="backbone",
+                field_views=True)
     jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
     job = jobs[-1]
     fresh = st.render_view(job)
@@ -191,6 +192,31 @@ def test_views_are_the_backbone_until_the_field_has_learnt_the_scene(cfg, backbo
     assert agree > 0.6, agree
 
 
+def test_views_leave_a_learnt_field_out_unless_field_views(cfg, backbone, frames, monkeypatch):
+    """By default (field_views off) a view is the keyframe fusion even where the field has
+    trained long enough to count: the field is not rendered at all (its render costs ten
+    times the fusion). With field_views the same stage blends the field in."""
+    assert cfg.mapper_node.field_views is False
+    views = {}
+    for on in (False, True):
+        st = _stage(cfg, mature_iterations=20, render_scale=0.5, fallback="keyframes",
+                    field_views=on)
+        jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
+        fused = st.render_view(jobs[-1])  # before training: the fusion alone either way
+        st.mapper.step(40)
+        calls = []
+        render = st.mapper.render_rays
+        monkeypatch.setattr(st.mapper, "render_rays", lambda *a, **k: calls.append(1)
+                            or render(*a, **k))
+        views[on] = (fused, st.render_view(jobs[-1]), len(calls))
+    (fused_off, learnt_off, calls_off), (fused_on, learnt_on, calls_on) = views[False], views[True]
+    assert np.array_equal(fused_off.embedding, fused_on.embedding)
+    assert calls_off == 0 and learnt_off.field_share == 0.0
+    np.testing.assert_array_equal(learnt_off.embedding, fused_off.embedding)
+    assert calls_on > 0 and learnt_on.field_share > 0.5
+    assert not np.allclose(learnt_on.embedding, fused_on.embedding, atol=1e-3)
+
+
 def test_a_learnt_field_reads_the_views_one_visibility_pass(cfg, backbone, frames,
                                                             monkeypatch):
     """At full size the coverage of a trained field reads the depth fusion's visibility
@@ -198,7 +224,7 @@ def test_a_learnt_field_reads_the_views_one_visibility_pass(cfg, backbone, frame
     from neurncd_ros.core.engine import views as V
 
     st = _stage(cfg, mature_iterations=20, render_scale=1.0, fallback="keyframes",
-                depth_fusion=True)
+                depth_fusion=True, field_views=True)
     jobs = [st.admit(f, _record(backbone, f)) for f in frames[:30:2]]
     st.mapper.step(40)
     calls = []
@@ -766,7 +792,7 @@ def test_a_learnt_field_renders_the_features_it_distils(frames):
                                 "mapper.distill_features": distill})
         st = MapperStage(dataclasses.replace(cd.mapper_node, mature_iterations=20,
                                              render_scale=1.0, fallback="backbone",
-                                             depth_fusion=False),
+                                             depth_fusion=False, field_views=True),
                          mapper_factory(cd), online=False)
         jobs = [st.admit(f, _record(b, f)) for f in frames[:30:2]]
         st.mapper.step(60)

@@ -302,6 +302,26 @@ class StampSync:
         return out
 
 
+def tf_chain(parent: dict[str, str], frame: str) -> list[str]:
+    """``frame``, its parent, its parent's parent ... up to the root of its tree in a
+    child -> parent map. In a loop (a malformed /tf) the walk stops before the first frame
+    it would visit again, so no frame is listed twice."""
+    out, seen = [frame], {frame}
+    while out[-1] in parent and parent[out[-1]] not in seen:
+        out.append(parent[out[-1]])
+        seen.add(out[-1])
+    return out
+
+
+def tf_root(parent: dict[str, str], frame: str) -> str:
+    """The root of ``frame``'s tree in a child -> parent map; in a loop, the smallest
+    name of the loop (the same for every frame on or above it)."""
+    chain = tf_chain(parent, frame)
+    if chain[-1] not in parent:
+        return chain[-1]
+    return min(chain[chain.index(parent[chain[-1]]):])
+
+
 class TfBuffer:
     """Transforms from /tf (time-stamped) and /tf_static, composed along the tree.
 
@@ -352,11 +372,9 @@ class TfBuffer:
     def frames(self) -> set[str]:
         return set(self.parent) | set(self.parent.values())
 
-    def _chain(self, frame: str) -> list[str]:
-        out = [frame]
-        while out[-1] in self.parent and len(out) < 64:
-            out.append(self.parent[out[-1]])
-        return out
+    def chain(self, frame: str) -> list[str]:
+        """``frame`` and its ancestors up to its tree's root (:func:`tf_chain`)."""
+        return tf_chain(self.parent, frame)
 
     def _edge(self, child: str, stamp: int, skew: int, max_gap: int) -> np.ndarray:
         if child in self.static:
@@ -372,7 +390,7 @@ class TfBuffer:
     def lookup(self, parent: str, child: str, stamp: int, skew: int, max_gap: int = 0
                ) -> np.ndarray:
         """T_parent_child at ``stamp`` (per edge: exact, interpolated or nearest, see pose_at)."""
-        up_c, up_p = self._chain(child), self._chain(parent)
+        up_c, up_p = self.chain(child), self.chain(parent)
         common = next((f for f in up_c if f in up_p), None)
         if common is None:
             raise LookupError(f"frames {parent!r} and {child!r} are not connected in /tf")

@@ -35,7 +35,7 @@ from ..msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsi
 from ..camera import Intrinsics, check_pose
 from ..frame import Frame
 from ..params import param
-from ..sync import TfBuffer, nearest, pose_at
+from ..sync import TfBuffer, nearest, pose_at, tf_root
 from ..topics import Topics
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -397,17 +397,6 @@ def tf_frames_in_tree_order(parent: dict[str, str]) -> list[str]:
         out.append(frame)
         stack.extend(sorted(children[frame], reverse=True))
     return out + sorted(set(parent) - set(out))
-
-
-def tf_root(parent: dict[str, str], frame: str) -> str:
-    """The root of ``frame``'s tree in a child -> parent map (the smallest name of a loop)."""
-    seen = [frame]
-    while seen[-1] in parent:
-        up = parent[seen[-1]]
-        if up in seen:
-            return min(seen[seen.index(up):])
-        seen.append(up)
-    return seen[-1]
 
 
 def check_tf_pair(tfbuf: TfBuffer, tf_parent: str, tf_child: str, path: str | Path,

@@ -5,9 +5,11 @@ lock and one set of queues, and its documented parameters sit beside the code th
 
 Which views are rendered, in this order (``next_view``):
 
-1. every keyframe the field admits (never dropped: a keyframe's view is
-   rendered and published with its own colour, depth and intrinsics, so
-   discovery always has what it needs, however late it is);
+1. every keyframe the field admits (a keyframe's view is rendered and
+   published with its own colour, depth and intrinsics, so discovery always has
+   what it needs, however late it is; only when more than
+   ``max_queued_keyframes`` wait is the oldest dropped, reported as
+   ``keyframes_dropped``);
 2. otherwise the newest frame: a frame that arrives before the previous one
    was rendered replaces it (counted ``skipped_newer``), and a frame that waited
    longer than ``stale_after_s`` is dropped (``skipped_stale``). Frames that
@@ -22,6 +24,11 @@ the highest maturity among the keyframes that see a pixel's 3D point
 iterations since admission / ``mature_iterations`` (at most 1); at
 ``full_coverage`` the field alone is used. The first views of a new scene are
 therefore the backbone's, and the field takes over where it has been trained.
+That blending is off by default (``field_views``): the mature field labels worse
+than the keyframe fusion below, which is the mean its KL fit converges to, and its
+render costs ten times the fusion, so on a bag of minutes the views fell behind
+the keyframes once it rendered (bench/results/graph_n5400*.json). Off, the views are
+the fallback alone and the field trains for the saved map (``map_path``).
 
 With ``fallback: keyframes`` (the default) what is blended in is not the one
 frame's embedding but, per pixel, the mean over the frame and the stored
@@ -31,9 +38,10 @@ predictive entropy over the views: it rises where views disagree, which a
 single frame cannot show. The frame's own embedding counts ``own_view_weight``
 times: the other views reach its points through poses and depths a pixel or
 two off, and small objects blur in their mean. On the live schedule
-(``run.training_rate_hz``) the field rarely matures within a short sequence, so
-this fusion is what the multi-view map contributes there (bench/results/ncd.json,
-rows ``fallback_backbone`` and ``backbone_logits``).
+(``run.training_rate_hz``) the field rarely matures within a short sequence, and
+with ``field_views`` off it is never rendered into a view, so this fusion is what the
+multi-view map contributes (bench/results/ncd.json, rows ``fallback_backbone`` and
+``backbone_logits``).
 
 The view's depth, which discovery cuts into convex segments, is the multi-view map's too
 (``depth_fusion``): the measured depth averaged, pixel by pixel, with what the nearest
@@ -109,6 +117,17 @@ class MapperNodeConfig:
                           "of it and the stored backbone embeddings of the keyframes that see "
                           "the point ('keyframes'), or render the field everywhere ('none')",
                           choices=("backbone", "keyframes", "none"))
+    field_views: bool = param(False, "blend the field's own render into the views where the "
+                              "keyframes that see a pixel have trained long enough (coverage: "
+                              "mature_iterations, full_coverage, min_field_weight); off, the "
+                              "views are the fallback alone (the keyframe fusion) and the field "
+                              "trains for the saved map. Off because the mature field labels "
+                              "worse than the fusion it is fitted to (tuning seeds 500-503 at "
+                              "run.training_rate_hz 400: all-class 76.95 against 77.72) and its "
+                              "render costs about 1.1 s per 320x240 view on one thread against "
+                              "0.1 s: on a 3-minute bag (bench/graph.py --frames 5400) half the "
+                              "keyframes went unlabelled and novel mIoU fell from 81.3 to 67.6 "
+                              "once it rendered. fallback 'none' renders the field regardless")
     mature_iterations: int = param(1000, "training iterations after which a keyframe's "
                                    "points are rendered from the field alone (the fast field "
                                    "matches the backbone after about as many, "
@@ -507,8 +526,12 @@ class MapperStage:
             view_depth = resize_to(view_depth, full_h, full_w, cv2.INTER_NEAREST)
         points, mask = backproject(depth, intr, f.pose) if views else (None, None)
         seen = seen if depth is fuse_depth_in else None  # the same test, at render_scale 1
-        weight = (self.field_weight(kfs, points, mask, h, w, seen)
-                  if self.cfg.fallback != "none" else np.ones((h, w), np.float32))
+        if self.cfg.fallback == "none":
+            weight = np.ones((h, w), np.float32)
+        elif self.cfg.field_views:
+            weight = self.field_weight(kfs, points, mask, h, w, seen)
+        else:
+            weight = np.zeros((h, w), np.float32)
         mean_h = None
         if fuse:
             backbone, mean_h = self.keyframe_fill(f, backbone, views, points, mask,

@@ -130,7 +130,7 @@ class PoseStage:
         if self.topics.world_frame not in frames or self.topics.camera_frame not in frames:
             return False
         try:
-            chain_c, chain_w = self.tf._chain(self.topics.camera_frame), self.tf._chain(
+            chain_c, chain_w = self.tf.chain(self.topics.camera_frame), self.tf.chain(
                 self.topics.world_frame)
         except KeyError:
             return False
