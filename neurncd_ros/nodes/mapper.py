@@ -204,8 +204,9 @@ def make_node():
                     self.stage.mapper.reset()
 
         def _image(self, stream: str, msg, value) -> None:
-            self._offer(stream, header_ns(msg), value)
-            self._offer_poses(self.poses.offer_image(stream, header_ns(msg), value,
+            stamp = header_ns(msg)
+            self._offer(stream, stamp, value)
+            self._offer_poses(self.poses.offer_image(stream, stamp, value,
                                                      self.stage.intrinsics))
 
         def on_color(self, msg) -> None:

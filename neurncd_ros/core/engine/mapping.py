@@ -130,17 +130,18 @@ class MapperNodeConfig:
                               "frames and 45 % of the keyframes (latency p95 81 s) against "
                               "459 and 85 % (25 s) without it. fallback 'none' renders the "
                               "field regardless")
-    mature_iterations: int = param(1000, "training iterations after which a keyframe's "
-                                   "points are rendered from the field alone (the fast field "
-                                   "matches the backbone after about as many, "
+    mature_iterations: int = param(1000, "field_views: training iterations after which a "
+                                   "keyframe's points are rendered from the field alone (the "
+                                   "fast field matches the backbone after about as many, "
                                    "bench/results/field.json)",
                                    lo=1, hi=10 ** 7)
-    full_coverage: float = param(1.0, "coverage at which a pixel is taken from the field "
-                                 "alone (the best maturity of the keyframes seeing it)",
-                                 lo=0.01, hi=1.0)
-    min_field_weight: float = param(0.1, "pixels whose field weight is below this take the "
-                                    "backbone's embedding alone and are not rendered (the "
-                                    "render is the stage's main cost)", lo=0.0, hi=1.0)
+    full_coverage: float = param(1.0, "field_views: coverage at which a pixel is taken from "
+                                 "the field alone (the best maturity of the keyframes seeing "
+                                 "it)", lo=0.01, hi=1.0)
+    min_field_weight: float = param(0.1, "field_views: pixels whose field weight is below "
+                                    "this take the backbone's embedding alone and are not "
+                                    "rendered (the render is the stage's main cost)",
+                                    lo=0.0, hi=1.0)
     fusion: str = param("probabilities", "fallback keyframes: average the views' logits, or their "
                         "class probabilities ('probabilities': the view's entropy is then the "
                         "predictive entropy over the views, higher where they disagree)",

@@ -129,12 +129,8 @@ class PoseStage:
         frames = self.tf.frames()
         if self.topics.world_frame not in frames or self.topics.camera_frame not in frames:
             return False
-        try:
-            chain_c, chain_w = self.tf.chain(self.topics.camera_frame), self.tf.chain(
-                self.topics.world_frame)
-        except KeyError:
-            return False
-        return any(f in chain_w for f in chain_c)
+        chain_w = self.tf.chain(self.topics.world_frame)
+        return any(f in chain_w for f in self.tf.chain(self.topics.camera_frame))
 
     # ------------------------------------------------------------ inputs
     def offer_pose(self, stamp_ns: int, pose: np.ndarray) -> list[tuple[int, np.ndarray]]:
