@@ -92,13 +92,14 @@ def check(agg: dict, bags: list[dict]) -> list[dict[str, Any]]:
                     f"The explicit map averages the backbone's logits of every labelled frame "
                     f"per voxel with the bag's depth and poses, so it is already a multi-view "
                     f"fusion; the field trained {it} iterations per bag in the stream time "
-                    f"(run.training_rate_hz) over {kf} keyframes, and its views are completed "
-                    f"from the backbone where it has not learnt the scene. Both rows share the "
-                    f"backbone and the discovery stage; what the full system has beyond the "
-                    f"direct fusion of the same logits is its mapper stage: the keyframes' "
-                    f"fusion of the view's depth (mapper_node.depth_fusion; the explicit map "
-                    f"segments each frame's measured depth) and the field where it has learnt "
-                    f"the scene.")
+                    f"(run.training_rate_hz) over {kf} keyframes and is rendered into the "
+                    f"views only with mapper_node.field_views (off by default: the views are "
+                    f"then the keyframes' fusion of the backbone's embeddings). Both rows "
+                    f"share the backbone and the discovery stage; what the full system has "
+                    f"beyond the explicit map's fusion of the same logits is its mapper "
+                    f"stage: the keyframes' fusion per pixel of the view (the explicit map "
+                    f"pools per voxel) and of the view's depth (mapper_node.depth_fusion; the "
+                    f"explicit map segments each frame's measured depth).")
     out.append(t)
 
     t = _target("full mIoU known > Semantic-NeRF 1 % (mIoU known)", full_known, sn, 0.0,
