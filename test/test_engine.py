@@ -117,6 +117,27 @@ def test_embedding_stage_pairs_keeps_the_newest_and_gates_by_stamp(backbone, fra
         st.embed(stamp, rgb[:, :40], depth)
 
 
+def test_embedding_rate_gate_counts_from_the_pair_being_embedded(backbone, frames):
+    """Online the backbone embeds a taken pair while the next ones arrive: those are
+    gated against the taken pair's stamp, so a 30 Hz stream gated at 10 Hz is embedded
+    every third frame, as offline, however long each embedding takes."""
+    st = EmbeddingStage(backbone, EmbeddingNodeConfig(max_rate_hz=10.0, output_scale=0.5))
+    taken, free_at = [], frames[0].stamp_ns
+    for f in frames[:13]:
+        st.offer("depth", f.stamp_ns, f.depth)
+        st.offer("color", f.stamp_ns, f.rgb)
+        if f.stamp_ns >= free_at:  # the backbone is free: it takes what waits...
+            job = st.take()
+            if job is not None:
+                taken.append(job)
+                free_at = f.stamp_ns + 50_000_000  # ... and embeds it for 50 ms
+    for job in taken:
+        st.embed(*job)
+    assert [j[0] for j in taken] == [f.stamp_ns for f in frames[0:13:3]]
+    assert st.health.counts["skipped_rate"] == 13 - len(taken)
+    assert st.health.counts.get("dropped_busy", 0) == 0
+
+
 @pytest.mark.parametrize("size, published", [((640, 480), (240, 320)),
                                                ((848, 480), (181, 320)),
                                                ((96, 72), (72, 96))])

@@ -88,9 +88,15 @@ class EmbeddingStage:
         return got
 
     def take(self) -> tuple[int, np.ndarray, np.ndarray] | None:
-        """The newest waiting pair (stamp, rgb, depth), or None."""
+        """The newest waiting pair (stamp, rgb, depth), or None. The rate gate counts from
+        the pair taken: pairs that arrive while the backbone embeds it are gated against
+        its stamp, not against the previous embedding's (which let through the next frame
+        or two of a 30 Hz camera, 13-15 embeddings a second at ``max_rate_hz`` 10, where
+        offline, embedding each pair as it passes the gate, takes every third frame)."""
         with self._lock:
             job, self._latest = self._latest, None
+            if job is not None:
+                self._last_stamp = int(job[0])
             return job
 
     @property
