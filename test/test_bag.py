@@ -426,3 +426,142 @@ def test_a_bag_whose_frames_are_all_dropped_says_why(tmp_path):
     with pytest.raises(formats.FormatError, match="no frames to convert: .*topics.distortion"):
         formats.convert(tmp_path / "b", tmp_path / "out.mcap")
     assert not (tmp_path / "out.mcap").exists()
+
+
+# ---------------------------------------------------------------- compressed images
+
+def _compressed(stamp: int, fmt: str, data: bytes):
+    """A rosbags sensor_msgs/CompressedImage, built here by hand (cv2 encodes)."""
+    return bag._t(bag.COMPRESSED_IMAGE)(header=bag.header_msg(stamp, "camera"), format=fmt,
+                                        data=np.frombuffer(data, np.uint8))
+
+
+def _png(img: np.ndarray) -> bytes:
+    import cv2
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+def _compressed_bag(path: Path, frames: list[Frame], colour: str = "png",
+                    depth: str = "16UC1", rvl: bool = False) -> Topics:
+    """The frames as image_transport records them: colour on .../compressed (PNG or JPEG,
+    BGR inside), depth on .../compressedDepth (12-byte header, then a PNG of millimetres,
+    or for 32FC1 of the quantised inverse depth), ground truth as 16-bit PNGs."""
+    import struct
+
+    import cv2
+    raw = Topics()
+    tp = Topics(color=raw.color + "/compressed", depth=raw.depth + "/compressedDepth",
+                semantic=raw.semantic + "/compressed", instance=raw.instance + "/compressed")
+    items = []
+    for f in frames:
+        s = f.stamp_ns
+        for topic, typ, stamp, msg in bag.frame_messages(f, raw):
+            if topic == raw.color:
+                if colour == "png":
+                    msg = _compressed(s, "rgb8; png compressed bgr8", _png(f.rgb[:, :, ::-1]))
+                else:
+                    ok, buf = cv2.imencode(".jpg", f.rgb[:, :, ::-1],
+                                           [cv2.IMWRITE_JPEG_QUALITY, 95])
+                    msg = _compressed(s, "rgb8; jpeg compressed bgr8", buf.tobytes())
+                topic, typ = tp.color, bag.COMPRESSED_IMAGE
+            elif topic == raw.depth:
+                if depth == "16UC1":
+                    mm = np.round(f.depth * 1000).astype(np.uint16)
+                    head, img = struct.pack("<iff", 0, 0.0, 0.0), mm
+                else:  # compressed_depth_image_transport's inverse-depth quantisation
+                    z0, zmax = 100.0, 10.0
+                    a = z0 * (z0 + 1.0)
+                    b = 1.0 - a / zmax
+                    with np.errstate(divide="ignore"):
+                        q = np.where(f.depth > 0, a / f.depth + b, 0)
+                    head, img = struct.pack("<iff", 0, a, b), q.astype(np.uint16)
+                body = _png(img) if not rvl else struct.pack("<II", 64, 48) + bytes(99)
+                codec = "rvl" if rvl else "png"
+                msg = _compressed(s, f"{depth}; compressedDepth {codec}", head + body)
+                topic, typ = tp.depth, bag.COMPRESSED_IMAGE
+            elif topic in (raw.semantic, raw.instance):
+                img = f.semantic if topic == raw.semantic else f.instance
+                topic = tp.semantic if topic == raw.semantic else tp.instance
+                msg, typ = _compressed(s, "mono16; png compressed", _png(img)), \
+                    bag.COMPRESSED_IMAGE
+            items.append((topic, typ, stamp, msg))
+    bag.write_messages(path, items)
+    return tp
+
+
+def test_compressed_colour_depth_and_ground_truth_read_exactly(tmp_path):
+    frames = make_frames(3, w=64, h=48)
+    tp = _compressed_bag(tmp_path / "b", frames)
+    assert bag.bag_topics(tmp_path / "b")[tp.color] == (bag.COMPRESSED_IMAGE, 3)
+    reader = FrameReader(tmp_path / "b", topics=tp)
+    assert len(reader) == 3 and reader.gt_roles == ["semantic", "instance"]
+    assert_same(frames, list(reader))  # PNG is lossless: every pixel and depth as written
+    assert reader.dropped == []
+
+
+def test_jpeg_colour_and_quantised_inverse_depth(tmp_path):
+    frames = make_frames(2, w=64, h=48, gt=False)
+    v, u = np.mgrid[0:48, 0:64]
+    for i, f in enumerate(frames):  # smooth colour, as a camera sees (JPEG halves chroma)
+        f.rgb = np.stack([u * 4, v * 5, 255 - u * 2 - v - 40 * i], -1).astype(np.uint8)
+    tp = _compressed_bag(tmp_path / "b", frames, colour="jpeg", depth="32FC1")
+    got = list(FrameReader(tmp_path / "b", topics=tp))
+    assert len(got) == 2
+    for f, g in zip(frames, got):
+        assert g.rgb.shape == f.rgb.shape and g.depth.dtype == np.float32
+        # JPEG at quality 95: close, not exact, and still RGB (not BGR).
+        err = np.abs(g.rgb.astype(int) - f.rgb.astype(int))
+        assert err.mean() < 3, err.mean()
+        assert err.mean() < np.abs(g.rgb.astype(int) - f.rgb[:, :, ::-1].astype(int)).mean()
+        # No depth stays no depth (not NaN); the rest within the quantisation's step.
+        np.testing.assert_array_equal(g.depth == 0, f.depth == 0)
+        ok = f.depth > 0
+        assert np.abs(g.depth[ok] - f.depth[ok]).max() < 0.01 * f.depth[ok].max() ** 2
+
+
+def test_compressed_bag_problems_are_named(tmp_path):
+    frames = make_frames(2, w=64, h=48, gt=False)
+    tp = _compressed_bag(tmp_path / "rvl", frames, rvl=True)
+    reader = FrameReader(tmp_path / "rvl", topics=tp)
+    assert len(reader) == 0 and len(reader.dropped) == 2
+    assert all(r.startswith("bad depth: /camera/depth/image_raw/compressedDepth: "
+                            "compressedDepth with the RVL codec is not supported")
+               for _, r in reader.dropped), reader.dropped
+    assert "bad depth: 2" in reader.summary()
+    # The raw topic names of a compressed bag are not in it: the error names the topic to set.
+    with pytest.raises(BagError, match="no color topic '/camera/color/image_raw'; .*; it has "
+                                       "'/camera/color/image_raw/compressed' "
+                                       r"\(sensor_msgs/msg/CompressedImage\): set topics.color"):
+        FrameReader(tmp_path / "rvl")
+    # A topic of another type is refused, naming the types it may have.
+    with pytest.raises(BagError, match="has type sensor_msgs/msg/CameraInfo, expected "
+                                       "sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage"):
+        FrameReader(tmp_path / "rvl", topics=Topics(color=tp.camera_info, depth=tp.depth))
+    # One colour message whose data is no image: that frame is dropped, naming why.
+    frames = make_frames(3, w=64, h=48, gt=False)
+    tp = _compressed_bag(tmp_path / "ok", frames)
+    s0 = frames[0].stamp_ns
+    items = []
+    for f in frames:
+        for topic, typ, stamp, msg in bag.frame_messages(f):
+            if topic == Topics().color:
+                data = b"not a jpeg" if stamp == s0 else _png(f.rgb[:, :, ::-1])
+                topic, typ, msg = tp.color, bag.COMPRESSED_IMAGE, _compressed(stamp, "jpeg", data)
+            items.append((topic, typ, stamp, msg))
+    bag.write_messages(tmp_path / "bad", items)
+    reader = FrameReader(tmp_path / "bad", topics=Topics(color=tp.color))
+    assert_same(frames[1:], list(reader), gt=False)
+    assert reader.dropped == [(s0, "bad color: /camera/color/image_raw/compressed: compressed "
+                                   "image (format 'jpeg') cannot be decoded (10 bytes)")]
+
+
+def test_encoded_size_reads_png_and_jpeg_headers():
+    import cv2
+    img = np.zeros((37, 53, 3), np.uint8)
+    assert bag.encoded_size(_png(img)) == (37, 53)
+    ok, jpg = cv2.imencode(".jpg", img)
+    assert bag.encoded_size(jpg.tobytes()) == (37, 53)
+    assert bag.encoded_size(b"not an image") is None
+    assert bag.encoded_size(jpg.tobytes()[:20]) is None  # cut before its SOF segment

@@ -140,3 +140,50 @@ def test_pose_errors():
 def test_stamps():
     assert msgconv.stamp_to_ns(NS(sec=3, nanosec=5)) == 3_000_000_005
     assert msgconv.ns_to_stamp(3_000_000_005) == (3, 5)
+
+
+def _png(img) -> bytes:
+    import cv2
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+def test_compressed_images_decode_to_rgb_and_metres():
+    import struct
+    bgr = CASES["bgr8"]
+    png = NS(format="bgr8; png compressed bgr8", data=_png(bgr))
+    assert msgconv.is_compressed(png) and not msgconv.is_compressed(image(bgr, "bgr8"))
+    np.testing.assert_array_equal(msgconv.rgb_from_image(png, "/c"), bgr[:, :, ::-1])
+    bgra = np.dstack([bgr, np.full(bgr.shape[:2], 7, np.uint8)])  # alpha dropped
+    np.testing.assert_array_equal(
+        msgconv.rgb_from_image(NS(format="png", data=_png(bgra))), bgr[:, :, ::-1])
+    mm = np.array([[0, 1000, 2500]], np.uint16)
+    for fmt, data in (("16UC1; png compressed", _png(mm)),  # image_transport's compressed
+                      ("16UC1; compressedDepth png", struct.pack("<iff", 0, 0, 0) + _png(mm)),
+                      ("16UC1; compressedDepth", struct.pack("<iff", 0, 0, 0) + _png(mm))):
+        np.testing.assert_allclose(msgconv.depth_from_image(NS(format=fmt, data=data)),
+                                   [[0, 1.0, 2.5]])
+    # 32FC1: quantised inverse depth q, depth = a / (q - b); q = 0 is no depth (0, not NaN).
+    q = np.array([[0, 200, 1000]], np.uint16)
+    d = msgconv.depth_from_image(NS(format="32FC1; compressedDepth png",
+                                    data=struct.pack("<iff", 0, 500.0, 100.0) + _png(q)))
+    np.testing.assert_allclose(d, [[0, 5.0, 500 / 900]], rtol=1e-6)
+
+
+@pytest.mark.parametrize("fmt, data, call, match", [
+    ("png", _png(CASES["mono8"]), "rgb", "colour image must have 3 channels.*decodes to mono8"),
+    ("bgr8; png compressed bgr8", _png(CASES["bgr8"]), "depth",
+     "depth image must be 16-bit millimetres or 32FC1 metres.*decodes to bgr8"),
+    ("jpeg", b"\xff\xd8 broken", "rgb", r"compressed image \(format 'jpeg'\) cannot be decoded"),
+    ("16UC1; compressedDepth png", b"\0" * 12, "depth", "has no image after its header"),
+    ("16UC1; compressedDepth rvl", b"\0" * 40, "depth", "RVL codec is not supported"),
+    ("8UC1; compressedDepth png", b"\0" * 12 + _png(CASES["16UC1"]), "depth",
+     "compressedDepth of encoding '8UC1'"),
+    ("16UC1; compressedDepth png", b"\0" * 12 + _png(CASES["mono8"]), "depth",
+     "holds uint8 with shape"),
+])
+def test_bad_compressed_images_are_named(fmt, data, call, match):
+    conv = msgconv.rgb_from_image if call == "rgb" else msgconv.depth_from_image
+    with pytest.raises(MessageError, match="^/t: .*" + match):
+        conv(NS(format=fmt, data=data), "/t")

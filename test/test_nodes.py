@@ -453,3 +453,78 @@ def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_n
     if node_name == "mapper":  # an input that is really absent is still named so
         assert "waiting for embedding: nothing arrives there" in text, text[-3000:]
     assert code == 0, text[-2000:]
+
+
+def _compressed_frame(stamp_ns: int, w: int = 96, h: int = 72, broken: bool = False):
+    """Colour as image_transport's compressed (JPEG) and depth as its compressedDepth (a
+    12-byte header, then a PNG of millimetres), built here with cv2."""
+    import struct
+
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    v, u = np.mgrid[0:h, 0:w]
+    bgr = np.stack([u * 2, v * 3, 200 - u], -1).astype(np.uint8)
+    depth = (1200 + 10 * u + 5 * v).astype(np.uint16)
+    msgs = []
+    for fmt, data in (("bgr8; jpeg compressed bgr8",
+                       b"not a jpeg" if broken else cv2.imencode(".jpg", bgr)[1].tobytes()),
+                      ("16UC1; compressedDepth png",
+                       struct.pack("<iff", 0, 0, 0) + cv2.imencode(".png", depth)[1].tobytes())):
+        m = CompressedImage()
+        m.header.stamp.sec, m.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
+        m.header.frame_id, m.format, m.data = "camera", fmt, data
+        msgs.append(m)
+    return msgs
+
+
+@pytest.mark.parametrize("node_name", ["embedding", "mapper"])
+def test_nodes_take_compressed_colour_and_depth(node_name, ros_node, tmp_path):
+    """Topics named as image_transport names them (.../compressed, .../compressedDepth)
+    are subscribed as sensor_msgs/CompressedImage; the embedding node embeds such a frame
+    (same stamp, the backbone's size) and logs an undecodable one as bad colour."""
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from neurncd_ros.nodes.common import output_qos, sensor_qos
+
+    node, domain = ros_node
+    color, depth = "/cam/color/image_raw/compressed", "/cam/depth/image_raw/compressedDepth"
+    log = tmp_path / f"{node_name}.log"
+    proc = start(["-m", f"neurncd_ros.nodes.{node_name}", "--ros-args",
+                  "-p", f"topics.color:={color}", "-p", f"topics.depth:={depth}",
+                  "-p", f"{node_name}_node.log_throttle_s:=0.5"], ros_env(domain), log)
+    got = []
+    try:
+        node.create_subscription(Image, "/neurncd/embedding", got.append, sensor_qos(10))
+        pubs = {t: node.create_publisher(CompressedImage, t, output_qos())
+                for t in (color, depth)}
+        assert spin_until(node, lambda: all(p.get_subscription_count() for p in pubs.values()),
+                          120), log.read_text()
+        for t in (color, depth):
+            types = {i.topic_type for i in node.get_subscriptions_info_by_topic(t)}
+            assert types == {"sensor_msgs/msg/CompressedImage"}, (t, types)
+        if node_name == "embedding":
+            stamp = 3_000_000_000
+            for _ in range(10):
+                for topic, m in zip((color, depth), _compressed_frame(stamp)):
+                    pubs[topic].publish(m)
+                if spin_until(node, lambda: any(msgconv.stamp_to_ns(m.header.stamp) == stamp
+                                                for m in got), 10):
+                    break
+            match = [m for m in got if msgconv.stamp_to_ns(m.header.stamp) == stamp]
+            assert match, log.read_text()
+            emb = msgconv.image_to_array(match[0])
+            assert emb.shape == (72, 96, 9) and np.isfinite(emb).all() and emb.std() > 0
+            bad = "colour image skipped: /cam/color/image_raw/compressed: compressed image " \
+                  "(format 'bgr8; jpeg compressed bgr8') cannot be decoded (10 bytes)"
+            for k in range(20):
+                for topic, m in zip((color, depth),
+                                    _compressed_frame(stamp + (k + 1) * 10**8, broken=True)):
+                    pubs[topic].publish(m)
+                if spin_until(node, lambda: bad in log.read_text(), 2):
+                    break
+            assert bad in log.read_text(), log.read_text()[-3000:]
+        assert proc.poll() is None, log.read_text()
+    finally:
+        code = stop(proc)
+    assert code == 0, log.read_text()[-2000:]

@@ -4,12 +4,18 @@ Duck-typed on purpose: the same functions read rclpy messages (live topics)
 and rosbags messages (offline bags), so neither rclpy nor rosbags is imported
 here and the conversion is tested once. Building a message is left to the
 caller, who passes the dict of fields returned here to its own message type.
+
+Colour and depth may also come as sensor_msgs/CompressedImage, as robots record them
+through image_transport (``<base>/compressed``: JPEG or PNG; ``<base>/compressedDepth``:
+PNG behind a 12-byte header, 16UC1 millimetres or 32FC1 quantised inverse depth):
+:func:`rgb_from_image` and :func:`depth_from_image` take either message.
 """
 
 from __future__ import annotations
 
 import math
 import re
+import struct
 from typing import Any
 
 import numpy as np
@@ -103,8 +109,86 @@ def image_fields(arr: np.ndarray, encoding: str, topic: str = "") -> dict[str, A
             "step": w * ch * dtype.itemsize, "data": data.view(np.uint8).reshape(-1)}
 
 
+def is_compressed(msg: Any) -> bool:
+    """Whether ``msg`` is a sensor_msgs/CompressedImage (a ``format``, no ``encoding``)."""
+    return hasattr(msg, "format") and not hasattr(msg, "encoding")
+
+
+# compressed_depth_image_transport's header before the PNG: int32 format, then the two
+# float32 parameters of the inverse-depth quantisation (little endian, as written on x86).
+_DEPTH_HEADER = struct.Struct("<iff")
+
+
+def _imdecode(data: np.ndarray, topic: str, what: str) -> np.ndarray:
+    import cv2  # only compressed images need it
+
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if img is None:
+        raise MessageError(f"{_where(topic)}{what} cannot be decoded ({data.size} bytes)")
+    return img
+
+
+def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
+    """sensor_msgs/CompressedImage to (array, encoding), the encoding as an Image would
+    carry it: ``bgr8`` for colour (whatever the original order, the codec stores BGR),
+    ``mono8``, ``16UC1`` (millimetres) or ``32FC1`` (metres, NaN where nothing was
+    measured).
+
+    ``format`` is image_transport's: ``"<encoding>; jpeg compressed bgr8"``,
+    ``"<encoding>; png compressed"``, or just ``"jpeg"`` / ``"png"`` (compressed), and
+    ``"<encoding>; compressedDepth png"`` (compressedDepth: a 12-byte header, then a PNG of
+    millimetres for 16UC1, or of the quantised inverse depth q for 32FC1, depth = a / (q - b)
+    with a, b from the header and q = 0 for no depth). The RVL codec of compressedDepth is
+    refused: record with ``png``, or republish raw."""
+    fmt = str(msg.format).strip()
+    head, _, rest = fmt.partition(";")
+    encoding = head.strip() if rest else ""
+    data = _as_bytes(msg.data)
+    if "compresseddepth" in fmt.lower():
+        if "rvl" in rest.lower():
+            raise MessageError(f"{_where(topic)}compressedDepth with the RVL codec is not "
+                               "supported; record depth with the png codec (the "
+                               "compressedDepth default) or as raw sensor_msgs/Image")
+        if data.size <= _DEPTH_HEADER.size:
+            raise MessageError(f"{_where(topic)}compressedDepth message of {data.size} bytes "
+                               "has no image after its header")
+        _, quant_a, quant_b = _DEPTH_HEADER.unpack_from(data.tobytes()[:_DEPTH_HEADER.size])
+        img = _imdecode(data[_DEPTH_HEADER.size:], topic, "compressedDepth PNG")
+        if img.ndim != 2 or img.dtype != np.uint16:
+            raise MessageError(f"{_where(topic)}compressedDepth PNG holds {img.dtype} "
+                               f"with shape {img.shape}, expected one 16-bit channel")
+        if encoding == "32FC1":
+            q = img.astype(np.float32)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.where(img > 0, np.float32(quant_a) / (q - np.float32(quant_b)),
+                                 np.float32(np.nan))
+            return depth.astype(np.float32), "32FC1"
+        if encoding in ("16UC1", "mono16", ""):
+            return img, "16UC1"
+        raise MessageError(f"{_where(topic)}compressedDepth of encoding {encoding!r}; "
+                           "expected 16UC1 or 32FC1")
+    img = _imdecode(data, topic, f"compressed image (format {fmt!r})")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[:, :, :3]  # BGRA: the alpha says nothing here
+    if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
+        return np.ascontiguousarray(img), "bgr8"
+    if img.ndim == 2 and img.dtype == np.uint8:
+        return img, "mono8"
+    if img.ndim == 2 and img.dtype == np.uint16:
+        return img, "16UC1"
+    raise MessageError(f"{_where(topic)}compressed image (format {fmt!r}) decodes to "
+                       f"{img.dtype} with shape {img.shape}: not a colour, mono or 16-bit image")
+
+
 def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
-    """Colour image message (rgb8 or bgr8) to (H, W, 3) uint8 RGB."""
+    """Colour image message (rgb8 or bgr8, or a compressed colour image) to (H, W, 3)
+    uint8 RGB."""
+    if is_compressed(msg):
+        arr, enc = decode_compressed(msg, topic)
+        if enc != "bgr8":
+            raise MessageError(f"{_where(topic)}colour image must have 3 channels; the "
+                               f"compressed image (format {msg.format!r}) decodes to {enc}")
+        return arr[:, :, ::-1].copy()
     if msg.encoding not in ("rgb8", "bgr8"):
         raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
                            f"{msg.encoding!r}")
@@ -116,8 +200,21 @@ def depth_from_image(msg: Any, topic: str = "") -> np.ndarray:
     """Depth message (16UC1/mono16 millimetres or 32FC1 metres) to float32 metres.
 
     Non-finite and negative values become 0 (no measurement), as in the
-    16-bit convention, so downstream code has one invalid marker.
+    16-bit convention, so downstream code has one invalid marker. A compressed depth
+    image (compressedDepth, or a 16-bit PNG) is decoded first (:func:`decode_compressed`).
     """
+    if is_compressed(msg):
+        arr, enc = decode_compressed(msg, topic)
+        if enc == "16UC1":
+            return arr.astype(np.float32) / np.float32(1000.0)
+        if enc != "32FC1":
+            raise MessageError(f"{_where(topic)}depth image must be 16-bit millimetres or "
+                               f"32FC1 metres; the compressed image (format {msg.format!r}) "
+                               f"decodes to {enc}")
+        d = arr
+        bad = ~np.isfinite(d) | (d < 0)
+        d[bad] = 0.0
+        return d
     enc = msg.encoding
     if enc in ("16UC1", "mono16"):
         return image_to_array(msg, topic).astype(np.float32) / np.float32(1000.0)

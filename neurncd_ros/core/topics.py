@@ -11,13 +11,26 @@ import dataclasses
 from .params import param
 
 
+COMPRESSED_SUFFIXES = ("compressed", "compressedDepth")
+
+
+def is_compressed_topic(topic: str) -> bool:
+    """Whether an input image topic carries sensor_msgs/CompressedImage: image_transport
+    publishes them as ``<base>/compressed`` and ``<base>/compressedDepth``, and the nodes
+    subscribe with the type the name says (a bag says its types itself)."""
+    return topic.rstrip("/").rsplit("/", 1)[-1] in COMPRESSED_SUFFIXES
+
+
 @dataclasses.dataclass(frozen=True)
 class Topics:
     """Topic and frame names of the topic contract (every one overridable)."""
 
-    color: str = param("/camera/color/image_raw", "colour image, sensor_msgs/Image rgb8|bgr8")
+    color: str = param("/camera/color/image_raw", "colour image, sensor_msgs/Image rgb8|bgr8; "
+                       "a topic ending in /compressed is a sensor_msgs/CompressedImage (JPEG "
+                       "or PNG, image_transport's compressed)")
     depth: str = param("/camera/depth/image_raw", "depth registered to colour, 16UC1 mm or "
-                       "32FC1 m")
+                       "32FC1 m; a topic ending in /compressedDepth (or /compressed, a 16-bit "
+                       "PNG) is a sensor_msgs/CompressedImage")
     camera_info: str = param("/camera/color/camera_info", "sensor_msgs/CameraInfo of colour")
     pose: str = param("/camera/pose", "geometry_msgs/PoseStamped camera-to-world, OpenCV axes")
     semantic: str = param("/camera/semantic/image_raw", "ground-truth NYU-13 ids, mono16")

@@ -256,6 +256,15 @@ def view_qos(depth: int = 10):
 
 # ---------------------------------------------------------------- messages
 
+def input_image_type(topic: str):
+    """The message class the nodes subscribe an input image topic with: CompressedImage
+    for image_transport's ``.../compressed`` and ``.../compressedDepth``, else Image."""
+    from sensor_msgs.msg import CompressedImage, Image
+
+    from ..core.topics import is_compressed_topic
+    return CompressedImage if is_compressed_topic(topic) else Image
+
+
 def make_image(fields: dict[str, Any], stamp_ns: int, frame_id: str):
     """An rclpy sensor_msgs/Image from ``msgconv.image_fields``-style fields."""
     import numpy as np

@@ -10,8 +10,8 @@ is published once, latched, on ``topics.embedding_spec``.
 from __future__ import annotations
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
-                     ros_logger, run_node, sensor_qos)
+from .common import (diagnostics_msg, header_ns, image_msg, input_image_type, latched_qos,
+                     output_qos, ros_logger, run_node, sensor_qos)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colour+depth pair "
@@ -63,8 +63,10 @@ def make_node():
             self.pub_spec.publish(String(data=spec.to_json()))
             self.pub_diag = self.create_publisher(DiagnosticArray, self.topics.diagnostics, 10)
             q = sensor_qos(node_cfg.queue_size)
-            self.create_subscription(Image, self.topics.color, self.on_color, q)
-            self.create_subscription(Image, self.topics.depth, self.on_depth, q)
+            self.create_subscription(input_image_type(self.topics.color), self.topics.color,
+                                     self.on_color, q)
+            self.create_subscription(input_image_type(self.topics.depth), self.topics.depth,
+                                     self.on_depth, q)
             self.create_timer(1.0, self.publish_diagnostics)
             self.worker = Worker("backbone", self.step, self.health).start()
 

@@ -29,8 +29,8 @@ import os
 import threading
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
-from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, latched_qos,
-                     pose_msg, ros_logger, run_node, sensor_qos, view_qos)
+from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, input_image_type,
+                     latched_qos, pose_msg, ros_logger, run_node, sensor_qos, view_qos)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
@@ -104,8 +104,10 @@ def make_node():
                 maxlen=len(self.stage.STREAMS) * self.stage.sync.capacity)
             self._intake_lock = threading.Lock()  # an intake job, or a map reset
             q = sensor_qos(self.node_cfg.queue_size)
-            self.create_subscription(Image, self.topics.color, self.on_color, q)
-            self.create_subscription(Image, self.topics.depth, self.on_depth, q)
+            self.create_subscription(input_image_type(self.topics.color), self.topics.color,
+                                     self.on_color, q)
+            self.create_subscription(input_image_type(self.topics.depth), self.topics.depth,
+                                     self.on_depth, q)
             self.create_subscription(PoseStamped, self.topics.pose, self.on_pose, q)
             if TFMessage is not None:
                 self.create_subscription(TFMessage, self.topics.tf,

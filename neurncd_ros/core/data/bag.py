@@ -3,7 +3,9 @@
 - :func:`write_bag` writes colour, depth, camera info, pose (topic and/or /tf)
   and optional semantic / instance ground truth, stamped with ``frame.stamp_ns``;
 - :class:`FrameReader` re-assembles Frames from a bag by header stamp (exact
-  or nearest within ``max_stamp_skew_ns``; poses optionally interpolated),
+  or nearest within ``max_stamp_skew_ns``; poses optionally interpolated; colour,
+  depth and ground truth as sensor_msgs/Image or CompressedImage, as robots record
+  them through image_transport),
   taking the pose from the pose topic or from /tf (+ /tf_static) chains (a
   tf frame pair the bag's tree cannot connect is refused, naming its frames), and
   lists what it had to drop;
@@ -29,6 +31,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from ..msgconv import (MessageError, camera_info_fields, camera_info_to_intrinsics,
+                        decode_compressed, is_compressed,
                         depth_fields, depth_from_image, image_fields, image_to_array,
                         matrix_to_pose_fields, ns_to_stamp, pose_to_matrix, rgb_from_image,
                         stamp_to_ns)
@@ -36,9 +39,11 @@ from ..camera import Intrinsics, check_pose
 from ..frame import Frame
 from ..params import param
 from ..sync import TfBuffer, nearest, pose_at, tf_root
-from ..topics import Topics
+from ..topics import COMPRESSED_SUFFIXES, Topics
 
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
@@ -362,6 +367,13 @@ _U32 = {True: struct.Struct("<I"), False: struct.Struct(">I")}
 _STAMP = {True: struct.Struct("<iI"), False: struct.Struct(">iI")}
 
 
+def header_stamp(raw: bytes) -> int:
+    """Header stamp (ns) of a CDR message that starts with a std_msgs/Header."""
+    little = raw[1] & 1 == 1
+    sec, nsec = _STAMP[little].unpack_from(raw, 4)
+    return sec * 1_000_000_000 + nsec
+
+
 def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     """Header stamp (ns), height and width of a CDR sensor_msgs/Image without decoding data.
 
@@ -375,6 +387,63 @@ def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     (h,) = _U32[little].unpack_from(raw, 4 + off)
     (w,) = _U32[little].unpack_from(raw, 4 + off + 4)
     return sec * 1_000_000_000 + nsec, h, w
+
+
+def _cdr_string_end(raw: bytes, off: int, little: bool) -> tuple[int, bytes]:
+    """(offset after, bytes without the NUL) of the CDR string at body offset ``off``
+    (aligned to 4 first; the body starts after the 4-byte encapsulation header)."""
+    off = (off + 3) & ~3
+    (n,) = _U32[little].unpack_from(raw, 4 + off)
+    return off + 4 + n, bytes(raw[4 + off + 4: 4 + off + 4 + max(n - 1, 0)])
+
+
+_PNG = b"\x89PNG\r\n\x1a\n"
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def encoded_size(data: bytes) -> tuple[int, int] | None:
+    """(height, width) of a PNG or JPEG from its header alone (PNG IHDR, JPEG SOF
+    segment), or None when neither is found."""
+    if data[:8] == _PNG and len(data) >= 24:
+        w, h = struct.unpack_from(">II", data, 16)
+        return int(h), int(w)
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 9 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_SOF:
+            h, w = struct.unpack_from(">HH", data, i + 5)
+            return int(h), int(w)
+        if marker in (0x01, *range(0xD0, 0xD9)):  # markers without a length
+            i += 2
+            continue
+        (n,) = struct.unpack_from(">H", data, i + 2)
+        i += 2 + n
+    return None
+
+
+def compressed_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
+    """Header stamp (ns), height and width of a CDR sensor_msgs/CompressedImage from the
+    PNG or JPEG header of its data (after the 12-byte header of compressedDepth); height
+    and width are 0 when the header does not say (the caller then decodes the image).
+
+    CDR body: stamp sec, nanosec, frame_id (string), format (string), data (uint32
+    length + bytes), strings and the length aligned to 4."""
+    little = raw[1] & 1 == 1
+    sec, nsec = _STAMP[little].unpack_from(raw, 4)
+    off, _ = _cdr_string_end(raw, 8, little)
+    off, fmt = _cdr_string_end(raw, off, little)
+    off = (off + 3) & ~3
+    (n,) = _U32[little].unpack_from(raw, 4 + off)
+    start = 4 + off + 4 + (12 if b"compresseddepth" in fmt.lower() else 0)
+    size = encoded_size(bytes(raw[start: min(start + 65536, 4 + off + 4 + n)]))
+    return (sec * 1_000_000_000 + nsec, *(size or (0, 0)))
 
 
 # ---------------------------------------------------------------- /tf tree
@@ -465,6 +534,7 @@ class FrameReader:
         # tf2 names frames without a leading slash (TfBuffer strips it from the bag's).
         self.tf_pair = (tf_parent.lstrip("/"), tf_child.lstrip("/")) if tf_parent else None
         self._plan_dropped: list[tuple[int, str]] = []
+        self._bad_images: dict[tuple[str, int], str] = {}
         self.dropped: list[tuple[int, str]] = []
         self.n_color = 0
         self.missing_gt = 0
@@ -490,12 +560,18 @@ class FrameReader:
             types = {c.topic: c.msgtype for c in reader.connections}
             for role in ("color", "depth", "camera_info"):
                 if getattr(tp, role) not in types:
+                    hint = "".join(
+                        f"; it has {t!r} ({types[t]}): set topics.{role} to it"
+                        for t in (f"{getattr(tp, role)}/{x}" for x in COMPRESSED_SUFFIXES)
+                        if t in types)
                     raise BagError(f"{path}: no {role} topic {getattr(tp, role)!r}; topics in "
-                                   f"the bag: {sorted(types)}")
-            for topic, want in ((tp.color, IMAGE), (tp.depth, IMAGE),
-                                (tp.camera_info, CAMERA_INFO)):
-                if types[topic] != want:
-                    raise BagError(f"{path}: {topic} has type {types[topic]}, expected {want}")
+                                   f"the bag: {sorted(types)}{hint}")
+            for topic, want in ((tp.color, IMAGE_TYPES), (tp.depth, IMAGE_TYPES),
+                                (tp.camera_info, (CAMERA_INFO,))):
+                if types[topic] not in want:
+                    raise BagError(f"{path}: {topic} has type {types[topic]}, expected "
+                                   + " or ".join(want))
+            self._types = types
             if not self.with_poses:
                 self.pose_source = "none (to be estimated)"
             elif self.tf_pair is None:
@@ -511,7 +587,7 @@ class FrameReader:
                                    f"{tp.tf_static} is in the bag")
                 self.pose_source = f"tf {self.tf_pair[0]}->{self.tf_pair[1]}"
             gt_roles = [r for r in ("semantic", "instance")
-                        if self.with_ground_truth and getattr(tp, r) in types]
+                        if self.with_ground_truth and types.get(getattr(tp, r)) in IMAGE_TYPES]
             self.gt_roles = gt_roles
             image_roles = {tp.color: "color", tp.depth: "depth"}
             image_roles.update({getattr(tp, r): r for r in gt_roles})
@@ -525,10 +601,12 @@ class FrameReader:
             for conn, _, raw in _messages(path, reader, list(image_roles) + small):
                 topic = conn.topic
                 if topic in image_roles:
-                    try:
-                        heads[image_roles[topic]].append(image_stamp_and_size(raw))
-                    except (struct.error, IndexError):
-                        raise BagError(f"{path}: {topic}: corrupt image message") from None
+                    role = image_roles[topic]
+                    stamp, h, w = self._stamp_and_size(raw, conn.msgtype, topic)
+                    if isinstance(h, str):  # a compressed image that cannot be decoded
+                        self._bad_images[(role, stamp)] = h
+                        h = w = 0
+                    heads[role].append((stamp, h, w))
                     continue
                 msg = deserialize(raw, conn.msgtype, path, topic)
                 if topic == tp.camera_info:
@@ -551,6 +629,25 @@ class FrameReader:
         if self.with_poses and self.tf_pair is not None:
             check_tf_pair(tfbuf, *self.tf_pair, path, tf_topic=tp.tf)
         self._plan_frames(heads, infos, poses, tfbuf)
+
+    def _stamp_and_size(self, raw: bytes, msgtype: str, topic: str
+                        ) -> tuple[int, int | str, int]:
+        """Stamp, height and width of an image message without decoding its pixels (a
+        compressed image whose PNG or JPEG header does not say is decoded: if it cannot
+        be, the height is the reason, and its frame is dropped with it)."""
+        try:
+            if msgtype == IMAGE:
+                return image_stamp_and_size(raw)
+            stamp, h, w = compressed_stamp_and_size(raw)
+        except (struct.error, IndexError):
+            raise BagError(f"{self.path}: {topic}: corrupt image message") from None
+        if h and w:
+            return stamp, h, w
+        try:
+            arr, _ = decode_compressed(deserialize(raw, msgtype, self.path, topic), topic)
+        except MessageError as err:
+            return stamp, str(err), 0
+        return stamp, arr.shape[0], arr.shape[1]
 
     def _plan_frames(self, heads: dict, infos: list, poses: list, tfbuf: TfBuffer) -> None:
         infos.sort(key=lambda x: x[0])
@@ -595,9 +692,13 @@ class FrameReader:
                   info_t: np.ndarray, pose_vals: list, pose_t: np.ndarray, tfbuf: TfBuffer
                   ) -> tuple[str, _Planned | None]:
         tp, ms = self.topics, self.skew / 1e6
+        if ("color", s) in self._bad_images:
+            return f"bad color: {self._bad_images[('color', s)]}", None
         dep = self._match(table, "depth", s)
         if dep is None:
             return f"missing depth: no {tp.depth} within {ms:g} ms", None
+        if ("depth", dep[0]) in self._bad_images:
+            return f"bad depth: {self._bad_images[('depth', dep[0])]}", None
         if dep[1] != size:
             return (f"size mismatch: colour is {size[1]}x{size[0]} but depth is "
                     f"{dep[1][1]}x{dep[1][0]}"), None
@@ -651,7 +752,7 @@ class FrameReader:
         try:
             topics = sorted({k[0] for k in need})
             for conn, _, raw in _messages(self.path, reader, topics):
-                s = image_stamp_and_size(raw)[0]
+                s = header_stamp(raw)
                 key = (conn.topic, s)
                 if need.get(key, 0) <= 0 or key in have:
                     continue
@@ -672,14 +773,15 @@ class FrameReader:
             self.dropped.append((p.stamp, "incomplete: images listed but not read back"))
 
     def _decode(self, raw: bytes, topic: str) -> np.ndarray | str:
-        msg = deserialize(raw, IMAGE, self.path, topic)
+        msg = deserialize(raw, self._types[topic], self.path, topic)
         tp = self.topics
         try:
             if topic == tp.color:
                 return rgb_from_image(msg, topic)
             if topic == tp.depth:
                 return depth_from_image(msg, topic)
-            arr = image_to_array(msg, topic)
+            arr = (decode_compressed(msg, topic)[0] if is_compressed(msg)
+                   else image_to_array(msg, topic))
             if arr.ndim != 2:
                 raise MessageError(f"{topic}: label image must have one channel")
             return arr.astype(np.uint16)
