@@ -81,6 +81,38 @@ def test_a_note_is_logged_at_info_and_leaves_the_diagnostics_ok():
     assert snap["level"] == H.OK and snap["message"] == "running"
 
 
+def test_a_partner_refused_before_pairing_is_named_as_the_cause():
+    """Colour that arrives and is refused (an encoding the node cannot read): a depth given
+    up unpaired says so, not that nothing came and large images may be lost in DDS."""
+    clock, lines = Clock(), []
+    h = H.Health("x", lambda level, text: lines.append(text), throttle_s=0.0, clock=clock)
+    report = H.sync_reporter(h)
+    report("depth", "unpaired", 5, "color")
+    assert "nothing came on color" in lines[-1] and "Fast DDS profile" in lines[-1]
+    h.refuse("color", "bad_color", "colour image skipped", "colour must be rgb8, got 'rgba8'")
+    report("depth", "unpaired", 6, "color")
+    assert lines[-1] == ("depth: the frame stamped 6 is given up unpaired: color arrives but "
+                         "is refused: colour must be rgb8, got 'rgba8': dropped")
+    report("depth", "unpaired", 7, "pose")  # another stream: as before
+    assert "nothing came on pose" in lines[-1]
+    clock.t = 2 * h.window_s  # the refusal is old news
+    report("depth", "unpaired", 8, "color")
+    assert "nothing came on color" in lines[-1]
+
+
+def test_a_frame_names_a_camera_info_of_another_size():
+    from neurncd_ros.core.camera import Intrinsics
+    from neurncd_ros.core.frame import Frame
+    rgb, depth = np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32)
+    small = Intrinsics.from_hfov(32, 24, 90.0)
+    with pytest.raises(ValueError, match="^the camera info is for 32x24 but the colour and "
+                                         "depth images are 64x48$"):
+        Frame(1, rgb, depth, np.eye(4), small).validate()
+    with pytest.raises(ValueError, match=r"^depth must be \(48, 64\) float32, got \(24, 32\)"):
+        Frame(1, rgb, depth[:24, :32], np.eye(4), Intrinsics.from_hfov(64, 48, 90.0)).validate()
+    Frame(1, rgb, depth, np.eye(4), Intrinsics.from_hfov(64, 48, 90.0)).validate()
+
+
 def test_health_rates_count_events_per_second():
     clock = Clock()
     h = H.Health("x", throttle_s=1.0, window_s=10.0, clock=clock)
@@ -661,6 +693,11 @@ def test_discovery_labels_a_wide_view_at_its_work_width_and_returns_the_views_si
     assert recs[48].shape == f.depth.shape and recs[48].dtype == np.uint16
     known = (recs[0] > 0) & (recs[0] < 100)
     assert np.mean(recs[48][known] == recs[0][known]) > 0.9
+    # The class table counts the pixels of the labels as published, at the view's size.
+    rec = st.label(dataclasses.replace(view, stamp_ns=view.stamp_ns + 1))
+    ids, counts = np.unique(rec.labels, return_counts=True)
+    shown = {int(i): int(c) for i, c in zip(ids, counts) if i}
+    assert {i: rec.classes[i]["pixels"] for i in shown} == shown
 
 
 def test_discovery_drops_views_that_never_get_a_spec(cfg, frames):

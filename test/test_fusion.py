@@ -211,6 +211,12 @@ def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
     for out in outs:
         assert (out[pic_b] == NOVEL).all() and (out[~pic_b] == WALL).all()
     assert fus.aliases == {other: NOVEL}
+    # An aliased id is never published: not where the frame has no depth either (its
+    # label is the frame's own there), so every id shown is one the class table lists.
+    holes = db.copy()
+    holes[:, ::7] = 0.0
+    out = fus.update(lab_b, holes, INTR, b, {NOVEL, other})
+    assert other not in np.unique(out) and (out[pic_b] == NOVEL).all()
     # Discovery retires NOVEL but keeps NOVEL + 1: the id it is published as stays.
     out = fus.update(lab_b, db, INTR, b, {other})
     assert (out[pic_b] == NOVEL).all()

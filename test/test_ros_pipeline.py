@@ -112,6 +112,12 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     assert table and all(v["kind"] in ("known", "novel") for v in table.values())
     for key, v in table.items():
         assert v["name"] == classes.class_name(int(key))
+    # The last label image and the last table were published together: every id the
+    # image shows is in the table, with the image's pixel count.
+    last = msgconv.image_to_array(labels[-1], "/neurncd/labels")
+    ids, counts = np.unique(last, return_counts=True)
+    shown = {str(int(i)): int(c) for i, c in zip(ids, counts) if i}
+    assert {k: table.get(k, {}).get("pixels") for k in shown} == shown, (shown, table)
     assert "saved map to" in text  # at shutdown too
 
 

@@ -82,6 +82,23 @@ def test_one_far_future_stamp_is_dropped_and_the_timeline_goes_on():
     assert s.drops["out_of_order"] == 0
 
 
+def test_a_stream_that_paused_is_on_time_and_a_glitch_after_it_is_not():
+    """A live camera stops for 44 s and resumes: its stamps moved on with the clock, so
+    its first frames pair (no jump); a stamp far beyond the pause is still a jump."""
+    clock, seen = Clock(), []
+    s = sync.StampSync(("depth", "color"), tolerance_ns=MS, horizon_s=1000.0,
+                       max_jump_ns=30_000 * MS, clock=clock,
+                       on_anomaly=lambda *a: seen.append(a[1]))
+    s.add("depth", 0, 0)
+    s.add("color", 0, 0)
+    clock.t = 44.0
+    assert s.add("depth", 44_000 * MS, 1) == [] and s.add("color", 44_000 * MS, 1) == \
+        [(44_000 * MS, {"depth": 1, "color": 1})]
+    assert "jump" not in seen and s.drops["jump"] == 0
+    clock.t = 45.0
+    assert s.add("depth", (45_000 + 31_000) * MS, 2) == [] and seen == ["jump"]
+
+
 def test_stamps_that_keep_jumping_ahead_restart_the_pairing():
     """A new bag (or a camera restarted after a long pause) jumps ahead for good: after
     reset_after such messages the pairing follows the new timeline."""

@@ -33,6 +33,10 @@ class Frame:
     def validate(self) -> "Frame":
         """Raise ValueError naming the problem if the frame is inconsistent."""
         h, w = self.intrinsics.height, self.intrinsics.width
+        size = np.shape(self.rgb)[:2]
+        if size != (h, w) and size == np.shape(self.depth):  # the camera info is what is off
+            raise ValueError(f"the camera info is for {w}x{h} but the colour and depth images "
+                             f"are {size[1]}x{size[0]}")
         if self.rgb.shape != (h, w, 3) or self.rgb.dtype != np.uint8:
             raise ValueError(f"rgb must be ({h}, {w}, 3) uint8, got {self.rgb.shape} "
                              f"{self.rgb.dtype}")

@@ -20,8 +20,10 @@ from .params import param
 def max_jump_param() -> Any:
     """The ``sync_max_jump_s`` parameter of a stage that pairs messages (:class:`StampSync`
     ``max_jump_ns``): one definition for the embedding, mapper and discovery stages."""
-    return param(30.0, "a message stamped more than this ahead of the last frame paired is "
-                 "dropped as a bad stamp (a driver glitch), unless stamps keep jumping (10 "
+    return param(30.0, "a message stamped more than this ahead of the last frame paired, "
+                 "beyond the time that has passed since (a live stream that paused is no "
+                 "jump), is dropped as a bad stamp (a driver glitch), unless stamps keep "
+                 "jumping (10 "
                  "messages in a row: a new bag, a camera restarted after a pause), when "
                  "pairing restarts on the new timeline (0 = no limit)", lo=0.0, hi=1e9,
                  unit="s")
@@ -94,14 +96,15 @@ class StampSync:
       paired any more and is dropped as out of order, unless stamps keep going
       back (``reset_after`` such messages in a row, e.g. a bag replayed in a loop,
       or a clock reset): then the pairing restarts on the new timeline;
-    - with ``max_jump_ns``, a message more than that ahead of the last group is
-      dropped as a jump, unless stamps keep jumping (``reset_after`` such messages
-      in a row: a new bag, a camera restarted after a long pause): then the pairing
-      restarts on the new timeline. One frame with a corrupt stamp (a driver's
-      glitch, 10^6 s ahead) would otherwise become the timeline: every later good
-      frame would be older than it and dropped until the reset, and the stages'
-      stamp-based decisions (a keyframe every ``max_interval`` of stamp time) would
-      wait for the stream to catch up with the bad stamp.
+    - with ``max_jump_ns``, a message more than that ahead of the last group, beyond the
+      time the clock says has passed since that group (a camera's stream that stopped for
+      a minute and resumes is on time), is dropped as a jump, unless stamps keep jumping
+      (``reset_after`` such messages in a row: a new bag, a camera restarted after a long
+      pause): then the pairing restarts on the new timeline. One frame with a corrupt
+      stamp (a driver's glitch, 10^6 s ahead) would otherwise become the timeline: every
+      later good frame would be older than it and dropped until the reset, and the
+      stages' stamp-based decisions (a keyframe every ``max_interval`` of stamp time)
+      would wait for the stream to catch up with the bad stamp.
 
     Every drop is counted by reason in :attr:`drops`; duplicates, out-of-order
     stamps, jumps and time resets are also passed to ``on_anomaly(stream, reason,
@@ -142,6 +145,7 @@ class StampSync:
         self.groups = 0
         self.resets = 0
         self.last_stamp: int | None = None
+        self._last_group_at = 0.0  # clock time of the group that set last_stamp
         self._backwards = 0
         self._jumps = 0
         self._since_group = collections.Counter()
@@ -241,7 +245,8 @@ class StampSync:
             self._anomaly(stream, "time_reset", stamp_ns)
             self.reset()
         elif (self.last_stamp is not None and self.max_jump_ns > 0
-              and stamp_ns > self.last_stamp + self.max_jump_ns):
+              and stamp_ns > self.last_stamp + self.max_jump_ns
+              + max(0, int((now - self._last_group_at) * 1e9))):
             self._jumps += 1
             if self._jumps < self.reset_after:
                 self._drop(stream, "jump")
@@ -293,6 +298,7 @@ class StampSync:
                 self._drop(ref_name, "superseded", i)
                 del self._pending[ref_name][: i + 1]
                 self.last_stamp = ref_stamp
+                self._last_group_at = self._clock()
                 self.groups += 1
                 self._since_group.clear()
                 out.append((ref_stamp, group))

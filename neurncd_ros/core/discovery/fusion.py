@@ -424,7 +424,8 @@ class LabelFusion:
                pose: np.ndarray, live_novel: set[int] | None = None) -> np.ndarray:
         """Add one frame's labels (H, W uint16; 0 = no label, no vote) seen from ``pose``
         (camera-to-world) and return the fused labels: every pixel with valid depth
-        takes its voxel's strongest label; pixels without depth keep theirs.
+        takes its voxel's strongest label; pixels without depth keep theirs; aliased
+        novel ids are published as the id they are aliased to, everywhere.
         ``live_novel``: the novel ids discovery still publishes (others lose their votes)."""
         labels = np.asarray(labels)
         if labels.shape != np.shape(depth):
@@ -440,6 +441,11 @@ class LabelFusion:
         out = labels.astype(np.uint16, copy=True)
         vals = self._fuse(labels[mask].astype(np.int64), points, live_novel)
         out[mask] = vals
+        if self._alias:
+            # Every id as published: pixels without depth keep the frame's own label, and a
+            # voxel's strongest vote may be for an id cast before it was aliased; neither
+            # may show an aliased id, which the class table no longer lists.
+            out = self._renamed(out.astype(np.int64)).astype(np.uint16)
         return out
 
     def _fuse(self, lab: np.ndarray, points: np.ndarray, live_novel: set[int] | None

@@ -718,8 +718,12 @@ class Discoverer:
         out[take] = out.ravel()[owner[near[take]]]
         return out
 
-    def classes(self) -> dict[int, dict]:
-        """{id: {"name", "kind": "known"|"novel", "pixels": count in the last labelled frame}}."""
+    def classes(self, labels: np.ndarray | None = None) -> dict[int, dict]:
+        """{id: {"name", "kind": "known"|"novel", "pixels"}}: the ids of the last labelled
+        frame and every novel id discovery holds; ``pixels`` counted in ``labels``, the
+        last frame's labels as published (scaled to the view's size), or else as labelled."""
+        if labels is not None:
+            self._count(labels)
         ids = set(self._last_counts) | set(self._novel_members)
         ids.discard(0)
         if self.fusion is not None:  # ids published under another id are not classes

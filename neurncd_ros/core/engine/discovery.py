@@ -196,7 +196,8 @@ class DiscoveryStage:
             labels = cv2.resize(labels, (full[1], full[0]), interpolation=cv2.INTER_NEAREST)
         self.health.count("labelled")
         self.health.set_state("running")
-        return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(), view.keyframe)
+        return LabelsRecord(view.stamp_ns, labels, self.discoverer.classes(labels),
+                            view.keyframe)
 
     def label_view(self, view: ViewRecord) -> LabelsRecord:
         """Offline: label a view record from the mapper stage directly."""

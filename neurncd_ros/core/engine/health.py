@@ -192,7 +192,15 @@ def sync_reporter(health, names: dict[str, str] | None = None):
     def report(stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         name = (names or {}).get(stream, stream)
         text = texts[reason].format(s=stamp_ns, n=name, d=detail)
-        if reason == "unpaired" and any(k in detail for k in ("color", "depth")):
+        refused = health.refused() if reason == "unpaired" else {}
+        why = [f"{s} arrives but is refused: {r}" for s, r in refused.items()
+               if s in detail.split(", ")]
+        if why:
+            # Its partner came and was refused before the pairing (Health.refuse): that,
+            # not a lost message, is why nothing came on it.
+            text = (f"{name}: the frame stamped {stamp_ns} is given up unpaired: "
+                    + "; ".join(why) + ": dropped")
+        elif reason == "unpaired" and any(k in detail for k in ("color", "depth")):
             # The usual cause of an image stream that keeps missing: a publisher with
             # default Fast DDS loses images over 1 MB before any subscriber sees them.
             text += ("; if this repeats, large images may be lost by their publisher: "

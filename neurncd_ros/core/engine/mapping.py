@@ -337,7 +337,10 @@ class MapperStage:
         completed that were admitted and queued for rendering."""
         with self._lock:
             groups = self.sync.add(stream, stamp_ns, value)
+        refused = [s for s in ("color", "depth") if s in self.health.refused()]
         report_starved(self.health, self.sync.starved(), self.cfg.sync_tolerance_ms,
+                       f"inputs do (the embedding node cannot embed the {' and '.join(refused)}"
+                       " this node refuses either; check that stamps agree" if refused else
                        "inputs do (check the topic names, that the embedding node runs, "
                        "and that stamps agree")
         queued = []
