@@ -153,6 +153,29 @@ def test_replay_waits_until_every_subscriber_has_matched(ros_node, small_bag, tm
     assert second == stamps and first == stamps
 
 
+def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, tmp_path):
+    """A bag recorded through image_transport has .../compressed where the contract's
+    colour topic would be: the replay plays it and says which topic to give the nodes."""
+    from neurncd_ros.core.data import bag
+
+    _, domain = ros_node
+    items = [(t + "/compressed" if t == "/camera/color/image_raw" else t, typ, s,
+              bag.deserialize(raw, typ, small_bag, t))
+             for t, typ, s, raw in bag.iter_raw(small_bag)]
+    path = tmp_path / "compressed.mcap"
+    bag.write_messages(path, items)
+    log = tmp_path / "replay.log"
+    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p", f"replay.bag:={path}",
+                  "-p", "replay.wait_for_subscribers_s:=0"], ros_env(domain), log)
+    try:
+        assert proc.wait(timeout=120) == 0, log.read_text()
+    finally:
+        stop(proc)
+    assert ("the bag has no /camera/color/image_raw but has /camera/color/image_raw/compressed"
+            " (sensor_msgs/msg/Image): start the nodes with -p topics.color:=/camera/color/"
+            "image_raw/compressed") in log.read_text(), log.read_text()
+
+
 @pytest.mark.parametrize("node_name, sig, extra", [
     ("embedding", "SIGINT", []),
     ("mapper", "SIGTERM", []),

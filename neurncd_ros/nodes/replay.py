@@ -40,6 +40,7 @@ def make_node():
     from rclpy.node import Node
 
     from ..core.data.bag import BagError, bag_topics, iter_raw
+    from ..core.topics import COMPRESSED_SUFFIXES
 
     class ReplayNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
@@ -73,6 +74,15 @@ def make_node():
                               if topic in self.publishers_by_topic)
             self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
                                 if x in self.publishers_by_topic]
+            for role, want in (("color", t.color), ("depth", t.depth)):
+                # A bag recorded through image_transport: the nodes read it once told.
+                alt = [f"{want}/{x}" for x in COMPRESSED_SUFFIXES
+                       if want not in topics and f"{want}/{x}" in topics]
+                if alt:
+                    self.get_logger().warning(
+                        f"the bag has no {want} but has {alt[0]} ({topics[alt[0]][0]}): start "
+                        f"the nodes with -p topics.{role}:={alt[0]} (and this replay too, so "
+                        "that it waits for their subscribers)")
             self._thread = threading.Thread(target=self._run, daemon=True, name="replay")
             self._thread.start()
 
