@@ -155,6 +155,10 @@ def test_compressed_images_decode_to_rgb_and_metres():
     png = NS(format="bgr8; png compressed bgr8", data=_png(bgr))
     assert msgconv.is_compressed(png) and not msgconv.is_compressed(image(bgr, "bgr8"))
     np.testing.assert_array_equal(msgconv.rgb_from_image(png, "/c"), bgr[:, :, ::-1])
+    # "compressed rgb8": the publisher gave the codec RGB data, so the decoded buffer is
+    # already RGB (compressed_image_transport's subscriber reads it so).
+    rgb_data = NS(format="rgb8; png compressed rgb8", data=_png(bgr))
+    np.testing.assert_array_equal(msgconv.rgb_from_image(rgb_data, "/c"), bgr)
     bgra = np.dstack([bgr, np.full(bgr.shape[:2], 7, np.uint8)])  # alpha dropped
     np.testing.assert_array_equal(
         msgconv.rgb_from_image(NS(format="png", data=_png(bgra))), bgr[:, :, ::-1])

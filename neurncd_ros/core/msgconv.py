@@ -130,9 +130,11 @@ def _imdecode(data: np.ndarray, topic: str, what: str) -> np.ndarray:
 
 def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     """sensor_msgs/CompressedImage to (array, encoding), the encoding as an Image would
-    carry it: ``bgr8`` for colour (whatever the original order, the codec stores BGR),
-    ``mono8``, ``16UC1`` (millimetres) or ``32FC1`` (metres, NaN where nothing was
-    measured).
+    carry it: ``bgr8`` or ``rgb8`` for colour, ``mono8``, ``16UC1`` (millimetres) or
+    ``32FC1`` (metres, NaN where nothing was measured). The colour order is
+    compressed_image_transport's: the decoded buffer is BGR unless the format names
+    ``compressed rgb...`` (the publisher gave the codec RGB data), as its subscriber
+    reads it.
 
     ``format`` is image_transport's: ``"<encoding>; jpeg compressed bgr8"``,
     ``"<encoding>; png compressed"``, or just ``"jpeg"`` / ``"png"`` (compressed), and
@@ -171,7 +173,8 @@ def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
     if img.ndim == 3 and img.shape[2] == 4:
         img = img[:, :, :3]  # BGRA: the alpha says nothing here
     if img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8:
-        return np.ascontiguousarray(img), "bgr8"
+        return np.ascontiguousarray(img), ("rgb8" if "compressed rgb" in rest.lower()
+                                           else "bgr8")
     if img.ndim == 2 and img.dtype == np.uint8:
         return img, "mono8"
     if img.ndim == 2 and img.dtype == np.uint16:
@@ -185,10 +188,10 @@ def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
     uint8 RGB."""
     if is_compressed(msg):
         arr, enc = decode_compressed(msg, topic)
-        if enc != "bgr8":
+        if enc not in ("bgr8", "rgb8"):
             raise MessageError(f"{_where(topic)}colour image must have 3 channels; the "
                                f"compressed image (format {msg.format!r}) decodes to {enc}")
-        return arr[:, :, ::-1].copy()
+        return arr[:, :, ::-1].copy() if enc == "bgr8" else arr
     if msg.encoding not in ("rgb8", "bgr8"):
         raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
                            f"{msg.encoding!r}")
