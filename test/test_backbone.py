@@ -269,6 +269,14 @@ def test_config_validation(tmp_path):
     torch.save({"weights": 1}, bad)
     with pytest.raises(ValueError, match="SmallRGBDNet"):
         bb.load_backbone(bb.BackboneConfig(checkpoint=str(bad)))
+    # Not a torch file at all (random bytes, a truncated copy of the shipped weights, the
+    # weights' JSON record): one clear line naming the file, not torch's traceback.
+    shipped = bb.DEFAULT_WEIGHTS.read_bytes()
+    for name, blob in (("random.pt", bytes(range(256)) * 12), ("cut.pt", shipped[:5000]),
+                       ("record.json", bb.DEFAULT_WEIGHTS.with_suffix(".json").read_bytes())):
+        (tmp_path / name).write_bytes(blob)
+        with pytest.raises(ValueError, match=f"^cannot read checkpoint {tmp_path / name}: "):
+            bb.load_backbone(bb.BackboneConfig(checkpoint=str(tmp_path / name)))
 
 
 def test_esanet_channel_to_id():

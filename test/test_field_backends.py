@@ -308,3 +308,11 @@ def test_map_file_records_every_section_and_refuses_old_versions(frames, tmp_pat
     torch.save({"weights": torch.zeros(2)}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="not a neurncd mapper file"):
         Mapper.load(tmp_path / "other.pt")
+    # A truncated map (a copy cut short), random bytes, text: one clear line, no traceback
+    # of torch's (the mapper node exits 2 with it).
+    data = path.read_bytes()
+    for name, blob in (("cut.pt", data[: len(data) // 3]), ("random.pt", bytes(range(256)) * 9),
+                       ("text.pt", b"not a map\n"), ("empty.pt", b"")):
+        (tmp_path / name).write_bytes(blob)
+        with pytest.raises(ValueError, match=f"^cannot read map {tmp_path / name}: "):
+            Mapper.load(tmp_path / name)

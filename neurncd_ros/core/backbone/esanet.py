@@ -46,15 +46,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import pickle
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+from ..torchfile import TorchFileError, read_torch_file
 
 __all__ = [
     "ESANet", "DepthStats", "DEPTH_STATS", "DEPTH_MODES",
@@ -414,41 +414,13 @@ class CheckpointNotFound(CheckpointError, FileNotFoundError):
 HEAD_KEY = "decoder.conv_out.weight"
 """The class head: its first dimension is the number of classes."""
 
-# Numpy scalars/dtypes (e.g. a stored best mIoU) rebuild plain data without
-# running code; allow them under both the numpy 1 and numpy 2 module names.
-_np_scalar = (getattr(np, "_core", None) or np.core).multiarray.scalar
-_NUMPY_SAFE: list[Any] = [np.dtype, _np_scalar, (_np_scalar, "numpy.core.multiarray.scalar"),
-                          (_np_scalar, "numpy._core.multiarray.scalar")]
-_NUMPY_SAFE += [t for t in vars(getattr(np, "dtypes", object)).values()
-                if isinstance(t, type) and issubclass(t, np.dtype)]
-
-
-def _unpickling_reason(err: Exception) -> str:
-    """The informative line of torch's weights_only refusal (which global it blocked)."""
-    skip = ("Weights only load failed", "Check the documentation", "Please file an issue")
-    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
-    useful = [ln for ln in lines if not ln.startswith(skip)]
-    return (useful[0] if useful else type(err).__name__).replace("WeightsUnpickler error: ", "")
-
-
 def _read_checkpoint(path: Path, device: str) -> Any:
-    """torch.load with weights_only=True; anything that would run code is refused."""
+    """torch.load with weights_only=True (:mod:`..torchfile`); anything that would run
+    code is refused."""
     try:
-        with torch.serialization.safe_globals(_NUMPY_SAFE):
-            return torch.load(path, map_location=device, weights_only=True)
-    except pickle.UnpicklingError as e:
-        reason = _unpickling_reason(e)
-        if "GLOBAL" in reason:
-            raise CheckpointError(
-                f"refusing checkpoint {path}: unpickling it would import and call code "
-                f"outside plain tensors/containers ({reason}); only weights-only "
-                "checkpoints are accepted") from None
-        raise CheckpointError(f"cannot read checkpoint {path}: not a weights-only torch "
-                              f"checkpoint ({reason})") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as e:
-        detail = str(e) or "file is empty or truncated"
-        raise CheckpointError(f"cannot read checkpoint {path}: {type(e).__name__}: "
-                              f"{detail}") from None
+        return read_torch_file(path, device, "checkpoint")
+    except TorchFileError as e:
+        raise CheckpointError(str(e)) from None
 
 
 def _state_dict_of(obj: Any, path: Path) -> dict[str, torch.Tensor]:

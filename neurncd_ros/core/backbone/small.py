@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .. import classes
+from ..torchfile import read_torch_file
 from ..uncertainty import entropy
 
 RGB_MEAN = (0.485, 0.456, 0.406)
@@ -372,7 +373,7 @@ def save_weights(model: SmallRGBDNet, path: str, extra: dict | None = None,
 
 def load_weights(path: str, device: str = "cpu") -> SmallRGBDNet:
     """Rebuild the net from a file written by :func:`save_weights` (eval mode, fp32)."""
-    blob = torch.load(path, map_location=device, weights_only=True)
+    blob = read_torch_file(path, device, "checkpoint")
     if not isinstance(blob, dict) or blob.get("arch") != "SmallRGBDNet":
         hint = ""
         if isinstance(blob, dict) and ("state_dict" in blob or "model" in blob):

@@ -53,6 +53,7 @@ import torch
 from ..camera import Intrinsics, camera_directions, check_pose, pixel_grid
 from ..frame import Frame
 from ..params import ConfigError, build, param, specs, to_dict
+from ..torchfile import read_torch_file
 from . import backends, scenebox
 from . import losses as L
 from .backends import FieldModel, RayBatch
@@ -582,7 +583,7 @@ class Mapper:
         ``overrides``: parameter values to change, by name, from the mapper, keyframes
         or the map's backend section (the backend itself cannot change).
         """
-        state = torch.load(str(path), map_location="cpu", weights_only=True)
+        state = read_torch_file(path, "cpu", "map")
         if not isinstance(state, dict) or "version" not in state:
             raise ValueError(f"{path} is not a neurncd mapper file")
         if state["version"] != SAVE_VERSION:

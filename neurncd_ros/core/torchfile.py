@@ -1,0 +1,60 @@
+"""The one way this package reads a torch file: weights only, and every failure a
+clear error naming the file.
+
+Backbone checkpoints (ours and ESANet's) and saved maps are all read here. ``torch.load``
+with ``weights_only=True`` refuses anything that would import and call code; a file that
+is truncated, random bytes, or not a torch file at all raises :class:`TorchFileError` (a
+ValueError: the nodes exit 2 and the tools 1 with its one line) instead of torch's own
+traceback.
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+class TorchFileError(ValueError):
+    """A torch file cannot be read: unsafe, truncated, or not a torch file."""
+
+
+# Numpy scalars/dtypes (e.g. a best mIoU stored in a checkpoint) rebuild plain data
+# without running code; allowed under both the numpy 1 and numpy 2 module names.
+_np_scalar = (getattr(np, "_core", None) or np.core).multiarray.scalar
+SAFE_GLOBALS: list[Any] = [np.dtype, _np_scalar, (_np_scalar, "numpy.core.multiarray.scalar"),
+                           (_np_scalar, "numpy._core.multiarray.scalar")]
+SAFE_GLOBALS += [t for t in vars(getattr(np, "dtypes", object)).values()
+                 if isinstance(t, type) and issubclass(t, np.dtype)]
+
+
+def _unpickling_reason(err: Exception) -> str:
+    """The informative line of torch's weights_only refusal (which global it blocked)."""
+    skip = ("Weights only load failed", "Check the documentation", "Please file an issue")
+    lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
+    useful = [ln for ln in lines if not ln.startswith(skip)]
+    return (useful[0] if useful else type(err).__name__).replace("WeightsUnpickler error: ", "")
+
+
+def read_torch_file(path: str | Path, device: str = "cpu", what: str = "checkpoint") -> Any:
+    """``torch.load(path, weights_only=True)``; ``what`` names the file in the errors
+    ("checkpoint", "map")."""
+    try:
+        with torch.serialization.safe_globals(SAFE_GLOBALS):
+            return torch.load(str(path), map_location=device, weights_only=True)
+    except pickle.UnpicklingError as e:
+        reason = _unpickling_reason(e)
+        if "GLOBAL" in reason:
+            raise TorchFileError(
+                f"refusing {what} {path}: unpickling it would import and call code "
+                f"outside plain tensors/containers ({reason}); only weights-only "
+                f"{what}s are accepted") from None
+        raise TorchFileError(f"cannot read {what} {path}: not a weights-only torch "
+                             f"file ({reason})") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        detail = str(e).splitlines()[0] if str(e) else "file is empty or truncated"
+        raise TorchFileError(f"cannot read {what} {path}: {type(e).__name__}: "
+                             f"{detail}") from None
