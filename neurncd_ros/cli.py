@@ -10,6 +10,7 @@ import argparse
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 
@@ -118,8 +119,12 @@ def cmd_info(args: argparse.Namespace) -> int:
 
     from .core.data.folder_common import PLAUSIBLE_MEDIAN_DEPTH_M, measured_depth
 
+    from .core.engine.offline import bag_poses
+
     cfg = load_config(args)
-    reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync)
+    # A bag without poses is read as `neurncd run` reads it: its frames, poses to estimate.
+    poses = bag_poses(args.bag, cfg)
+    reader = FrameReader.from_config(args.bag, cfg.topics, cfg.sync, with_poses=poses == "bag")
     n, with_gt, first = 0, 0, None
     medians, valid = [], []
     for frame in reader:
@@ -144,6 +149,10 @@ def cmd_info(args: argparse.Namespace) -> int:
             print(f"  warning: a median depth of {med:.2f} m is no indoor scene ({lo:g}-{hi:g} "
                   "m): check the depth scale the bag was made with")
     print("  " + reader.summary())
+    if poses != "bag":
+        print(f"  no pose in the bag ({cfg.topics.pose}, or /tf with sync.tf_parent and "
+              "tf_child): `neurncd run` and the mapper node estimate them by RGB-D odometry; "
+              "`neurncd convert --poses odometry` writes them into a new bag")
     return 0
 
 
@@ -176,6 +185,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     cfg = load_config(args)
     _set_threads(cfg)
+    for b in args.bag:  # every bag checked before minutes are spent on the first
+        evaluate.check_bag(b, cfg)
     per_bag = [evaluate.evaluate_bag(b, cfg, ablation=args.ablation, baselines=args.baselines)
                for b in args.bag]
     result = evaluate.write_eval(args.out, per_bag)
@@ -371,6 +382,15 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``neurncd``: run one subcommand, return its exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        # The engine's advice (a threshold tuned for another backbone, a suspicious depth
+        # scale) as a plain line, not Python's warning with its file and source line.
+        warnings.showwarning = lambda message, *_a, **_k: print(
+            f"neurncd {args.command}: warning: {message}", file=sys.stderr)
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return args.func(args)
     except ConfigError as err:

@@ -122,6 +122,18 @@ def test_info_gives_the_depth_and_warns_when_it_is_no_indoor_scene(tmp_path):
     assert f"depth: median {med:.2f} m" in r.stdout and "warning" not in r.stdout
     r = neurncd("info", bad, timeout=120)
     assert r.returncode == 0 and "is no indoor scene" in r.stdout, r.stdout
+    # A bag without poses: its frames, and that the poses will be estimated.
+    nopose = tmp_path / "nopose.mcap"
+    write_bag(nopose, frames, pose_mode="none")
+    r = neurncd("info", nopose, timeout=120)
+    assert r.returncode == 0 and "3 synchronised frames" in r.stdout, r.stdout + r.stderr
+    assert "no pose in the bag (/camera/pose" in r.stdout and "odometry" in r.stdout
+    # The engine's advice is one plain line, not a Python warning with file and source.
+    r = neurncd("run", "--bag", good, "--out", tmp_path / "out", "--set",
+                "backbone.novelty_branch=false", timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "neurncd run: warning: " in r.stderr and "no novelty branch" in r.stderr, r.stderr
+    assert "UserWarning" not in r.stderr and "warnings.warn" not in r.stderr, r.stderr
 
 
 def test_run_help_states_the_output_layout():

@@ -299,17 +299,25 @@ def evaluate_frames(frames: Iterable[Frame], cfg, total: int | None = None,
             "pictures": pictures, "semnerf": semnerf_runs}
 
 
-def evaluate_bag(bag: str | Path, cfg, ablation: bool = True, baselines: bool = True,
-                 progress: bool = True, keep_pictures: int = 4) -> dict[str, Any]:
-    """:func:`evaluate_frames` on a bag with a ground-truth semantic topic (poses from the
-    bag, or RGB-D odometry as ``neurncd run``)."""
-    from ..data.bag import FrameReader, bag_topics
-    from ..engine.offline import bag_poses
+def check_bag(bag: str | Path, cfg) -> None:
+    """Raise ValueError (BagError) unless the bag can be read and has a ground-truth
+    semantic topic: ``neurncd eval`` checks every bag before it runs the engine on any."""
+    from ..data.bag import bag_topics
 
     topics = bag_topics(bag)
     if cfg.topics.semantic not in topics:
         raise ValueError(f"{bag}: no ground-truth topic {cfg.topics.semantic} (NYU-13 ids); "
                          f"eval needs it. Topics in the bag: {sorted(topics)}")
+
+
+def evaluate_bag(bag: str | Path, cfg, ablation: bool = True, baselines: bool = True,
+                 progress: bool = True, keep_pictures: int = 4) -> dict[str, Any]:
+    """:func:`evaluate_frames` on a bag with a ground-truth semantic topic (poses from the
+    bag, or RGB-D odometry as ``neurncd run``)."""
+    from ..data.bag import FrameReader
+    from ..engine.offline import bag_poses
+
+    check_bag(bag, cfg)
     poses = bag_poses(bag, cfg)
     reader = FrameReader.from_config(bag, cfg.topics, cfg.sync, with_poses=poses == "bag")
     frames: Iterable[Frame] = reader
@@ -353,7 +361,8 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
     known = [int(c) for c in classes.KNOWN_IDS]
     novel = [int(c) for c in classes.NOVEL_IDS]
     names = [classes.class_name(c) for c in known + novel]
-    lines = [f"Over {n_bags} bag(s); percent; mean ± std over bags where several.", "",
+    lines = [f"Over {n_bags} bag(s); percent; mean ± std over bags where several (the "
+             "population standard deviation, ddof 0).", "",
              "### Table 1: per-class IoU (9 known | 4 novel)", "",
              "| method | " + " | ".join(names[:len(known)]) + " | " +
              " | ".join(f"*{n}*" for n in names[len(known):]) + " |",

@@ -9,6 +9,7 @@ import base64
 import html
 import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,11 @@ def _grid(pics: dict) -> list[str]:
     return rows
 
 
+def _inline(text: str) -> str:
+    """A Markdown cell as HTML: escaped, ``*x*`` (the novel classes' names) in italics."""
+    return re.sub(r"\*([^*]+)\*", r"<i>\1</i>", html.escape(text))
+
+
 def _md_to_html(md: str) -> str:
     out, in_table = [], False
     for line in md.splitlines():
@@ -55,7 +61,7 @@ def _md_to_html(md: str) -> str:
             if not in_table:
                 out.append("<table>")
                 in_table = True
-            out.append("<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in cells)
+            out.append("<tr>" + "".join(f"<{tag}>{_inline(c)}</{tag}>" for c in cells)
                        + "</tr>")
             continue
         if in_table:

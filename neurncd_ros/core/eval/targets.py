@@ -106,7 +106,7 @@ def check(agg: dict, bags: list[dict]) -> list[dict[str, Any]]:
                 "{a:.1f} vs {b:.1f} ({d:+.1f} points)", "run with --baselines")
     infos = [b.get("semnerf", {}).get(SEMNERF_ROW, {}) for b in bags]
     fit = [i["label_fit"] for i in infos if i.get("label_fit") is not None]
-    fit_s = f"{100 * min(fit):.0f}-{100 * max(fit):.0f} %" if fit else "?"
+    fit_s = _span([round(100 * f) for f in fit]) + " %" if fit else "?"
     if t["met"] is False:
         lab = _span([round(i["labels_per_keyframe"]) for i in infos
                      if i.get("labels_per_keyframe") is not None])
