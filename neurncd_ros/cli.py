@@ -382,12 +382,32 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of ``neurncd``: run one subcommand, return its exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    _log_above_progress_bars()
     with warnings.catch_warnings():
         # The engine's advice (a threshold tuned for another backbone, a suspicious depth
         # scale) as a plain line, not Python's warning with its file and source line.
         warnings.showwarning = lambda message, *_a, **_k: print(
             f"neurncd {args.command}: warning: {message}", file=sys.stderr)
         return _run(args)
+
+
+def _log_above_progress_bars() -> None:
+    """Log records (a frame the odometry lost, each with its reason) as whole lines above
+    the progress bar, through tqdm.write, not glued to the bar's line."""
+    import logging
+
+    from tqdm import tqdm
+
+    class TqdmHandler(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            tqdm.write(self.format(record), file=sys.stderr)
+
+    root = logging.getLogger()
+    if not any(h.get_name() == "neurncd-tqdm" for h in root.handlers):  # main() again
+        handler = TqdmHandler(logging.WARNING)
+        handler.set_name("neurncd-tqdm")
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        root.addHandler(handler)
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -376,3 +376,28 @@ def test_a_tf_frame_the_bag_has_not_is_named_by_info_run_and_convert(realsense_b
                 "--set", "sync.tf_child=base_footprint", timeout=120)
     assert r.returncode == 1
     assert "tf frame 'base_footprint' (tf_child) is not in the bag's /tf tree" in r.stderr
+
+
+def test_the_cli_logs_warnings_as_whole_lines_above_its_progress_bars(capsys):
+    """A frame the odometry loses is logged while `run`'s progress bar is drawn: the line
+    goes through tqdm.write (above the bar, not glued to it), once per record however
+    often main() runs in the process."""
+    import logging
+
+    from tqdm import tqdm
+
+    from neurncd_ros import cli
+
+    for _ in range(2):
+        assert cli.main(["params"]) == 0
+    root = logging.getLogger()
+    assert [h.get_name() for h in root.handlers].count("neurncd-tqdm") == 1
+    capsys.readouterr()
+    with tqdm(range(3), file=sys.stderr, desc="run") as bar:
+        for i in bar:
+            if i == 1:
+                logging.getLogger("neurncd_ros.core.odometry").warning(
+                    "frame 7: tracking lost against keyframe 2: too few inliers")
+    err = capsys.readouterr().err
+    # The bar's line is cleared (carriage return) before the record is written whole.
+    assert "\rframe 7: tracking lost against keyframe 2: too few inliers\n" in err, err

@@ -86,3 +86,6 @@ def test_run_estimates_the_poses_of_a_bag_without_them(tmp_path):
     result = json.loads((out / "metrics.json").read_text())
     assert result["poses"] == "odometry" and result["labelled"] >= 2
     assert result["metrics"]["miou_known"] > 20.0
+    lost = result["odometry_lost"]
+    assert (f"poses estimated by RGB-D odometry (the bag has none): {lost} of "
+            f"{result['frames'] + lost} frames lost track") in r.stdout, r.stdout

@@ -387,6 +387,11 @@ def summary(result: dict[str, Any]) -> str:
              f"training {result['seconds_training']} s ({result['iterations']} iterations, "
              f"{result['backend']}), rendering {result['seconds_rendering']} s, discovery "
              f"{result['seconds_discovery']} s"]
+    if result.get("poses") == "odometry":
+        lost = int(result.get("odometry_lost", 0))
+        lines.append(f"poses estimated by RGB-D odometry (the bag has none): {lost} of "
+                     f"{result['frames'] + lost} frames lost track and were skipped"
+                     + (" (each logged with its reason)" if lost else ""))
     m = result.get("metrics")
     if m:
         b = result["metrics_backbone_only"]
