@@ -342,8 +342,47 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
         params = body["ros__parameters"] or {}
         if not isinstance(params, dict):
             raise ConfigError(f"{source}: {node_name}.ros__parameters must be a mapping")
-        merged = _merge(merged, {k: v for k, v in params.items() if not ros_builtin(str(k))})
+        own = {k: v for k, v in params.items() if not ros_builtin(str(k))}
+        merged = _merge(merged, _undotted(own, f"{source}: {node_name}.ros__parameters"))
     return merged
+
+
+def _undotted(mapping: dict[str, Any], where: str, prefix: str = "") -> dict[str, Any]:
+    """A ``ros__parameters`` mapping with dotted keys (``discovery.entropy_threshold: 0.5``,
+    which ROS 2 accepts beside the nested form) nested as the schema reads them; a
+    parameter given both ways (or twice by dots) is a ConfigError naming it."""
+    out: dict[str, Any] = {}
+    for key, value in mapping.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            value = _undotted(value, where, name + ".")
+        *path, last = str(key).split(".")
+        node, done = out, prefix
+        for part in path:
+            done += part
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{where}: {done} is given twice (as a value and as a "
+                                  "section)")
+            done += "."
+        if last in node:
+            if not (isinstance(node[last], dict) and isinstance(value, dict)):
+                raise ConfigError(f"{where}: {name} is given twice (nested and dotted)")
+            both = set(_leaves(node[last])) & set(_leaves(value))
+            if both:
+                raise ConfigError(f"{where}: {name}.{sorted(both)[0]} is given twice "
+                                  "(nested and dotted)")
+            value = _merge(node[last], value)
+        node[last] = value
+    return out
+
+
+def _leaves(mapping: dict[str, Any], prefix: str = "") -> list[str]:
+    """The dotted names of a nested mapping's non-mapping values."""
+    out = []
+    for k, v in mapping.items():
+        out += _leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else [f"{prefix}{k}"]
+    return out
 
 
 def parse_overrides(pairs: list[str] | None, option: str = "--set") -> dict[str, Any]:

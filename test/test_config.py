@@ -167,6 +167,24 @@ def test_backend_and_keyframe_sections_nested_in_file_dotted_in_ros(tmp_path):
                    "mapper:\n  ros__parameters:\n    mapper: {fast: {plane_channels: 4}}\n")
     fast = config.load(two).section("mapper.fast")
     assert (fast.hidden, fast.plane_channels) == (16, 4)
+    # Dotted keys, which ROS 2 takes beside the nested form (the nodes read either), mean
+    # the same to neurncd and bringup; a parameter given both ways is given twice.
+    dotted = tmp_path / "dotted.yaml"
+    dotted.write_text("/**:\n  ros__parameters:\n    discovery.entropy_threshold: 0.5\n"
+                      "    mapper.fast: {hidden: 16}\n    mapper:\n      fast.plane_channels: 4\n")
+    got = config.load(dotted)
+    assert got.discovery.entropy_threshold == 0.5
+    assert (got.section("mapper.fast").hidden, got.section("mapper.fast").plane_channels) == \
+        (16, 4)
+    for body, name in (("    discovery.entropy_threshold: 0.5\n    discovery:\n"
+                        "      entropy_threshold: 0.4\n", "discovery.entropy_threshold"),
+                       ("    mapper.fast: {hidden: 16}\n    mapper:\n      fast:\n"
+                        "        hidden: 8\n", "mapper.fast.hidden"),
+                       ("    mapper.fast: 3\n    mapper.fast.hidden: 8\n", "mapper.fast")):
+        twice = tmp_path / "twice.yaml"
+        twice.write_text("/**:\n  ros__parameters:\n" + body)
+        with pytest.raises(ConfigError, match=f"{name} is given twice"):
+            config.load(twice)
 
 
 @pytest.mark.parametrize("values, match", [
