@@ -160,9 +160,17 @@ def test_tum_round_trip(tmp_path):
     i = frames[0].intrinsics
     got = list(read_folder(tmp_path / "t", intrinsics=[i.fx, i.fy, i.cx, i.cy]))
     assert_same(frames, got, pose_atol=1e-9, gt=False)
-    # default TUM fr1 camera and /5000 depth scale
-    dflt = next(read_folder(tmp_path / "t"))
-    assert (dflt.intrinsics.fx, dflt.intrinsics.cy) == (517.3, 255.3)
+    # The camera goes with the folder (intrinsics.json; TUM has none of its own), so the
+    # round trip needs no option; the /5000 depth scale is TUM's.
+    assert_same(frames, list(read_folder(tmp_path / "t")), pose_atol=1e-9, gt=False)
+    # Without it, the TUM fr1 preset's camera (640x480) is refused for these 32x24 images,
+    # naming the option to set, rather than placing every point wrongly.
+    (tmp_path / "t/intrinsics.json").unlink()
+    with pytest.raises(FormatError, match=r"the 'tum' preset's camera \(fx 517.3, fy 516.5, "
+                                          r"cx 318.6, cy 255.3\) does not fit these 32x24 "
+                                          r"images .*--opt intrinsics="):
+        next(read_folder(tmp_path / "t"))
+    dflt = next(read_folder(tmp_path / "t", intrinsics=[i.fx, i.fy, i.cx, i.cy]))
     np.testing.assert_array_equal(dflt.depth, frames[0].depth)
     # association tolerance: dropping one depth leaves that colour frame without a partner
     lines = (tmp_path / "t/depth.txt").read_text().splitlines()

@@ -256,9 +256,18 @@ def opencv_axes(intr: Intrinsics, pose: np.ndarray | None
     return fixed, (S @ T @ S if sx * sy < 0 else T @ S)
 
 
-def _camera(intr: tuple | None, h: int, w: int, where: Path) -> Intrinsics:
+def _camera(intr: tuple | None, h: int, w: int, where: Path, preset: str = "") -> Intrinsics:
+    """The camera of ``w`` x ``h`` images from (fx, fy, cx, cy). ``preset``: the preset they
+    came from (not given by the user or the folder), whose camera is refused where its
+    principal point is not near the images' centre: a preset made for other images (a
+    TUM preset's 640x480 camera on 320x240 images) would place every point wrongly."""
     if intr is None:
         raise FormatError(f"{where}: no intrinsics known; pass intrinsics=[fx, fy, cx, cy]")
+    if preset and not (0.25 * w <= intr[2] <= 0.75 * w and 0.25 * h <= intr[3] <= 0.75 * h):
+        raise FormatError(f"{where}: the {preset!r} preset's camera (fx {intr[0]:g}, fy "
+                          f"{intr[1]:g}, cx {intr[2]:g}, cy {intr[3]:g}) does not fit these "
+                          f"{w}x{h} images (its principal point is not near their centre): "
+                          "give the camera with --opt intrinsics=[fx,fy,cx,cy]")
     return Intrinsics(intr[0], intr[1], intr[2], intr[3], w, h)
 
 

@@ -99,7 +99,8 @@ def read_posetxt(folder: str | Path, cfg: FolderConfig = FolderConfig()) -> Iter
         rgb = read_rgb(colors[i])
         depth = read_depth(depths[i], fmt, scale, cfg.max_depth_m)
         check(depth, depths[i])
-        intr = _camera(intr_vals, *depth.shape, folder)
+        intr = _camera(intr_vals, *depth.shape, folder,
+                       "" if cfg.intrinsics else (cfg.preset or DEFAULT_PRESET["posetxt"]))
         yield _make_frame(_stamp(i, cfg), rgb, depth, poses[i], intr, str(colors[i]))
 
 

@@ -3,6 +3,8 @@ Part of :mod:`.formats` (layout described there)."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -12,11 +14,10 @@ import numpy as np
 from ..camera import matrix_to_quat
 from ..frame import Frame
 from ..sync import nearest, pose_at
-
-from .folder_common import (IMAGE_EXTS, FormatError, FolderConfig, _resolve, read_rgb,
-                            read_depth, _camera, _make_frame, _subsample, read_tum_trajectory,
-                            DepthScaleCheck)
-from .replica import _write_png
+from .folder_common import (DEFAULT_PRESET, IMAGE_EXTS, FormatError, FolderConfig, _resolve,
+                            read_rgb, read_depth, _camera, _make_frame, _subsample,
+                            read_tum_trajectory, DepthScaleCheck)
+from .replica import _read_intrinsics_json, _write_png
 
 
 
@@ -116,23 +117,39 @@ def read_tum(folder: str | Path, cfg: FolderConfig = FolderConfig(),
                           (" and pose" if with_poses else "") +
                           f" within {cfg.max_time_diff_s} s")
     check = DepthScaleCheck(cfg, kind, folder)
+    cam_file = folder / "intrinsics.json"  # written by write_tum (TUM itself has none)
+    own = None if cfg.intrinsics or not cam_file.is_file() else _read_intrinsics_json(cam_file)
+    preset = "" if cfg.intrinsics else (cfg.preset or DEFAULT_PRESET[kind])
     for t, rp, dp, pose in _subsample(pairs, cfg):
         rgb = read_rgb(rp)
         depth = read_depth(dp, fmt, scale, cfg.max_depth_m)
         check(depth, dp)
-        intr = _camera(intr_vals, *depth.shape, folder)
+        if own is not None:
+            if own.shape != depth.shape:
+                raise FormatError(f"{cam_file}: the camera is {own.width}x{own.height} but "
+                                  f"{dp.name} is {depth.shape[1]}x{depth.shape[0]}")
+            intr = own
+        else:
+            intr = _camera(intr_vals, *depth.shape, folder, preset)
         yield _make_frame(t, rgb, depth, pose, intr, str(rp))
 
 
 def write_tum(folder: str | Path, frames: Iterable[Frame], depth_scale: float = 5000.0
               ) -> int:
-    """Write Frames as a TUM RGB-D folder (rgb/, depth/, lists, groundtruth.txt)."""
+    """Write Frames as a TUM RGB-D folder (rgb/, depth/, lists, groundtruth.txt), and the
+    camera as ``intrinsics.json`` (TUM folders carry none; :func:`read_tum` reads it back
+    rather than a preset's camera)."""
     folder = Path(folder)
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(parents=True, exist_ok=True)
     rgb_l, dep_l, gt_l = [], [], []
+    camera = None
     for fr in frames:
         fr.validate()
+        if camera is not None and fr.intrinsics != camera:
+            raise FormatError(f"frame {fr.stamp_ns}: the camera changed ({fr.intrinsics}, "
+                              f"first {camera}); a TUM folder holds one")
+        camera = fr.intrinsics
         if fr.pose is None:
             raise FormatError(f"frame {fr.stamp_ns} has no pose (estimate poses with "
                               "convert --poses odometry)")
@@ -148,6 +165,8 @@ def write_tum(folder: str | Path, frames: Iterable[Frame], depth_scale: float = 
         dep_l.append(f"{t} depth/{t}.png")
         q = matrix_to_quat(fr.pose[:3, :3])
         gt_l.append(" ".join([t] + [repr(float(v)) for v in (*fr.pose[:3, 3], *q)]))
+    if camera is not None:
+        (folder / "intrinsics.json").write_text(json.dumps(dataclasses.asdict(camera)))
     for name, lines in (("rgb.txt", rgb_l), ("depth.txt", dep_l), ("groundtruth.txt", gt_l)):
         (folder / name).write_text("# timestamp data\n" + "\n".join(lines) + "\n")
     return len(rgb_l)
