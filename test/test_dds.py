@@ -23,6 +23,11 @@ def test_profile_set_unless_user_chose_one():
     user = {"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/my_profile.xml"}
     assert ensure_dds_profile(user) == "/etc/my_profile.xml"
     assert user["FASTRTPS_DEFAULT_PROFILES_FILE"] == "/etc/my_profile.xml"
+    # A mistyped path of the user's is named: Fast DDS would run on its defaults.
+    from neurncd_ros.nodes.common import dds_profile_warning
+    assert dds_profile_warning(profile) is None
+    assert "/etc/my_profile.xml (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE) is no file" in \
+        dds_profile_warning("/etc/my_profile.xml")
 
 
 PUBLISHER = textwrap.dedent("""

@@ -41,7 +41,8 @@ import sys
 import threading
 import time
 
-from .common import ConfigError, diagnostics_status, ensure_dds_profile, share_file
+from .common import (ConfigError, dds_profile_warning, diagnostics_status, ensure_dds_profile,
+                     share_file)
 from .parameters import empty_lists, params_file_error
 from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
@@ -192,7 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"bringup: configuration error: {err}", file=sys.stderr)
         return 2
-    ensure_dds_profile()
+    warning = dds_profile_warning(ensure_dds_profile())
+    if warning:
+        print(f"bringup: warning: {warning}", file=sys.stderr)
     _clean_shm(60.0)  # what earlier runs' killed processes left
     shutdown.started()
     watcher = DrainWatcher(topic)

@@ -58,6 +58,16 @@ def ensure_dds_profile(env: dict[str, str] | None = None) -> str:
     return profile
 
 
+def dds_profile_warning(profile: str) -> str | None:
+    """Why the Fast DDS profile in force will not be used (a path that names no file: Fast
+    DDS then logs one XML parser line and runs on its defaults), or None."""
+    if Path(profile).is_file():
+        return None
+    return (f"the Fast DDS profile {profile} (FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE) is no "
+            "file: Fast DDS runs on its defaults, whose shared-memory transport loses images "
+            "over 1 MB (README, 'Large images and Fast DDS')")
+
+
 def parse_cli(name: str, description: str, argv: list[str] | None = None
               ) -> tuple[argparse.Namespace, list[str]]:
     """Node command line: --help, then everything else (``--ros-args ...``) for rclpy."""
@@ -158,7 +168,9 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
     # times (rcl_wait, the take, the thread pool), and at 5 ms a 640x480 camera's 100
     # messages a second fell a second behind beside a busy worker, and DDS dropped them.
     sys.setswitchinterval(0.001)
-    ensure_dds_profile()
+    warning = dds_profile_warning(ensure_dds_profile())
+    if warning:
+        print(f"{name}: warning: {warning}", file=sys.stderr)
     import cv2
     cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node
     import rclpy
