@@ -191,12 +191,13 @@ def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
         if enc not in ("bgr8", "rgb8"):
             raise MessageError(f"{_where(topic)}colour image must have 3 channels; the "
                                f"compressed image (format {msg.format!r}) decodes to {enc}")
-        return arr[:, :, ::-1].copy() if enc == "bgr8" else arr
-    if msg.encoding not in ("rgb8", "bgr8"):
-        raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
-                           f"{msg.encoding!r}")
-    arr = image_to_array(msg, topic)
-    return arr[:, :, ::-1].copy() if msg.encoding == "bgr8" else arr
+    else:
+        enc = msg.encoding
+        if enc not in ("rgb8", "bgr8"):
+            raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
+                               f"{enc!r}")
+        arr = image_to_array(msg, topic)
+    return arr[:, :, ::-1].copy() if enc == "bgr8" else arr
 
 
 def depth_from_image(msg: Any, topic: str = "") -> np.ndarray:
@@ -207,29 +208,24 @@ def depth_from_image(msg: Any, topic: str = "") -> np.ndarray:
     image (compressedDepth, or a 16-bit PNG) is decoded first (:func:`decode_compressed`).
     """
     if is_compressed(msg):
-        arr, enc = decode_compressed(msg, topic)
-        if enc == "16UC1":
-            return arr.astype(np.float32) / np.float32(1000.0)
-        if enc != "32FC1":
+        d, enc = decode_compressed(msg, topic)
+        if enc not in ("16UC1", "32FC1"):
             raise MessageError(f"{_where(topic)}depth image must be 16-bit millimetres or "
                                f"32FC1 metres; the compressed image (format {msg.format!r}) "
                                f"decodes to {enc}")
-        d = arr
-        bad = ~np.isfinite(d) | (d < 0)
-        d[bad] = 0.0
-        return d
-    enc = msg.encoding
-    if enc in ("16UC1", "mono16"):
-        return image_to_array(msg, topic).astype(np.float32) / np.float32(1000.0)
-    if enc == "32FC1":
+    else:
+        enc = msg.encoding
+        if enc not in ("16UC1", "mono16", "32FC1"):
+            raise MessageError(f"{_where(topic)}depth image must be 16UC1 (mm) or 32FC1 (m), "
+                               f"got {enc!r}")
         d = image_to_array(msg, topic)
-        bad = ~np.isfinite(d) | (d < 0)
-        if bad.any():
-            d = d.copy()
-            d[bad] = 0.0
-        return d
-    raise MessageError(f"{_where(topic)}depth image must be 16UC1 (mm) or 32FC1 (m), got "
-                       f"{enc!r}")
+    if enc != "32FC1":
+        return d.astype(np.float32) / np.float32(1000.0)
+    bad = ~np.isfinite(d) | (d < 0)
+    if bad.any():
+        d = d.copy()
+        d[bad] = 0.0
+    return d
 
 
 def depth_fields(depth_m: np.ndarray, encoding: str = "16UC1", topic: str = ""

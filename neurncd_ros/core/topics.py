@@ -21,6 +21,15 @@ def is_compressed_topic(topic: str) -> bool:
     return topic.rstrip("/").rsplit("/", 1)[-1] in COMPRESSED_SUFFIXES
 
 
+def compressed_alternatives(topic: str, present) -> list[str]:
+    """The image_transport topics of ``topic`` (``<topic>/compressed``,
+    ``<topic>/compressedDepth``) among ``present`` when ``topic`` itself is not there:
+    the topic a user should set instead."""
+    if topic in present:
+        return []
+    return [t for t in (f"{topic}/{x}" for x in COMPRESSED_SUFFIXES) if t in present]
+
+
 @dataclasses.dataclass(frozen=True)
 class Topics:
     """Topic and frame names of the topic contract (every one overridable)."""

@@ -40,7 +40,7 @@ def make_node():
     from rclpy.node import Node
 
     from ..core.data.bag import BagError, bag_topics, iter_raw
-    from ..core.topics import COMPRESSED_SUFFIXES
+    from ..core.topics import compressed_alternatives
 
     class ReplayNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
@@ -76,8 +76,7 @@ def make_node():
                                 if x in self.publishers_by_topic]
             for role, want in (("color", t.color), ("depth", t.depth)):
                 # A bag recorded through image_transport: the nodes read it once told.
-                alt = [f"{want}/{x}" for x in COMPRESSED_SUFFIXES
-                       if want not in topics and f"{want}/{x}" in topics]
+                alt = compressed_alternatives(want, topics)
                 if alt:
                     self.get_logger().warning(
                         f"the bag has no {want} but has {alt[0]} ({topics[alt[0]][0]}): start "

@@ -39,7 +39,7 @@ from ..camera import Intrinsics, check_pose
 from ..frame import Frame
 from ..params import param
 from ..sync import TfBuffer, nearest, pose_at, tf_root
-from ..topics import COMPRESSED_SUFFIXES, Topics
+from ..topics import Topics, compressed_alternatives
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
@@ -381,12 +381,11 @@ def image_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     frame_id (uint32 length + bytes), padding to 4, height, width.
     """
     little = raw[1] & 1 == 1
-    sec, nsec = _STAMP[little].unpack_from(raw, 4)
     (n,) = _U32[little].unpack_from(raw, 12)
     off = (12 + n + 3) & ~3
     (h,) = _U32[little].unpack_from(raw, 4 + off)
     (w,) = _U32[little].unpack_from(raw, 4 + off + 4)
-    return sec * 1_000_000_000 + nsec, h, w
+    return header_stamp(raw), h, w
 
 
 def _cdr_string_end(raw: bytes, off: int, little: bool) -> tuple[int, bytes]:
@@ -436,14 +435,13 @@ def compressed_stamp_and_size(raw: bytes) -> tuple[int, int, int]:
     CDR body: stamp sec, nanosec, frame_id (string), format (string), data (uint32
     length + bytes), strings and the length aligned to 4."""
     little = raw[1] & 1 == 1
-    sec, nsec = _STAMP[little].unpack_from(raw, 4)
     off, _ = _cdr_string_end(raw, 8, little)
     off, fmt = _cdr_string_end(raw, off, little)
     off = (off + 3) & ~3
     (n,) = _U32[little].unpack_from(raw, 4 + off)
     start = 4 + off + 4 + (12 if b"compresseddepth" in fmt.lower() else 0)
     size = encoded_size(bytes(raw[start: min(start + 65536, 4 + off + 4 + n)]))
-    return (sec * 1_000_000_000 + nsec, *(size or (0, 0)))
+    return (header_stamp(raw), *(size or (0, 0)))
 
 
 # ---------------------------------------------------------------- /tf tree
@@ -560,10 +558,8 @@ class FrameReader:
             types = {c.topic: c.msgtype for c in reader.connections}
             for role in ("color", "depth", "camera_info"):
                 if getattr(tp, role) not in types:
-                    hint = "".join(
-                        f"; it has {t!r} ({types[t]}): set topics.{role} to it"
-                        for t in (f"{getattr(tp, role)}/{x}" for x in COMPRESSED_SUFFIXES)
-                        if t in types)
+                    hint = "".join(f"; it has {t!r} ({types[t]}): set topics.{role} to it"
+                                   for t in compressed_alternatives(getattr(tp, role), types))
                     raise BagError(f"{path}: no {role} topic {getattr(tp, role)!r}; topics in "
                                    f"the bag: {sorted(types)}{hint}")
             for topic, want in ((tp.color, IMAGE_TYPES), (tp.depth, IMAGE_TYPES),

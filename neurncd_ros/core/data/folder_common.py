@@ -256,6 +256,12 @@ def opencv_axes(intr: Intrinsics, pose: np.ndarray | None
     return fixed, (S @ T @ S if sx * sy < 0 else T @ S)
 
 
+def camera_preset(cfg: FolderConfig, kind: str) -> str:
+    """The preset a reader of ``kind`` takes its camera from, "" when the user gave one
+    (``intrinsics``): :func:`_camera` checks a preset's camera against the images."""
+    return "" if cfg.intrinsics else (cfg.preset or DEFAULT_PRESET[kind])
+
+
 def _camera(intr: tuple | None, h: int, w: int, where: Path, preset: str = "") -> Intrinsics:
     """The camera of ``w`` x ``h`` images from (fx, fy, cx, cy). ``preset``: the preset they
     came from (not given by the user or the folder), whose camera is refused where its

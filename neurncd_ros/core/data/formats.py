@@ -57,7 +57,8 @@ if TYPE_CHECKING:  # the bag module (rosbags) is imported when a bag is converte
 from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS,  # noqa: F401
                             DEFAULT_PRESET, FolderConfig, _resolve, read_rgb,  # noqa: F401
                             read_raw16, nyu_disparity_to_metres, sun_rotated_to_raw,  # noqa: F401
-                            decode_depth, read_depth, _camera, _make_frame,  # noqa: F401
+                            decode_depth, read_depth, _camera, camera_preset,  # noqa: F401
+                            _make_frame,  # noqa: F401
                             _subsample, _load_rows, _pose, read_tq_poses,  # noqa: F401
                             read_tum_trajectory, read_matrix_rows, read_redwood_log,  # noqa: F401
                             read_redwood_intrinsics, _NUM_RE, _indexed,  # noqa: F401
@@ -99,8 +100,7 @@ def read_posetxt(folder: str | Path, cfg: FolderConfig = FolderConfig()) -> Iter
         rgb = read_rgb(colors[i])
         depth = read_depth(depths[i], fmt, scale, cfg.max_depth_m)
         check(depth, depths[i])
-        intr = _camera(intr_vals, *depth.shape, folder,
-                       "" if cfg.intrinsics else (cfg.preset or DEFAULT_PRESET["posetxt"]))
+        intr = _camera(intr_vals, *depth.shape, folder, camera_preset(cfg, "posetxt"))
         yield _make_frame(_stamp(i, cfg), rgb, depth, poses[i], intr, str(colors[i]))
 
 

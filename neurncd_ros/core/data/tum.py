@@ -14,7 +14,7 @@ import numpy as np
 from ..camera import matrix_to_quat
 from ..frame import Frame
 from ..sync import nearest, pose_at
-from .folder_common import (DEFAULT_PRESET, IMAGE_EXTS, FormatError, FolderConfig, _resolve,
+from .folder_common import (IMAGE_EXTS, FormatError, FolderConfig, _resolve, camera_preset,
                             read_rgb, read_depth, _camera, _make_frame, _subsample,
                             read_tum_trajectory, DepthScaleCheck)
 from .replica import _read_intrinsics_json, _write_png
@@ -119,7 +119,7 @@ def read_tum(folder: str | Path, cfg: FolderConfig = FolderConfig(),
     check = DepthScaleCheck(cfg, kind, folder)
     cam_file = folder / "intrinsics.json"  # written by write_tum (TUM itself has none)
     own = None if cfg.intrinsics or not cam_file.is_file() else _read_intrinsics_json(cam_file)
-    preset = "" if cfg.intrinsics else (cfg.preset or DEFAULT_PRESET[kind])
+    preset = camera_preset(cfg, kind)
     for t, rp, dp, pose in _subsample(pairs, cfg):
         rgb = read_rgb(rp)
         depth = read_depth(dp, fmt, scale, cfg.max_depth_m)
