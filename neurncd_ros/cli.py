@@ -16,6 +16,7 @@ from pathlib import Path
 
 from . import config as config_mod
 from .core.params import ConfigError
+from .core.text import plural
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -82,8 +83,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
     else:
         from .core.data.bag import write_bag
         n = write_bag(out, frames, storage=args.format, topics=cfg.topics)
-    print(f"wrote {n} frames of seed {args.seed} ({scfg.width}x{scfg.height}, depth noise "
-          f"{scfg.depth_noise}) to {out} as {args.format} in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {plural(n, 'frame')} of seed {args.seed} ({scfg.width}x{scfg.height}, "
+          f"depth noise {scfg.depth_noise}) to {out} as {args.format} in "
+          f"{time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -103,10 +105,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
                         to=args.to, poses=args.poses, odometry=cfg.odometry, report=report,
                         overwrite=args.overwrite, topics=cfg.topics, sync=cfg.sync,
                         **{**folder_opts, **opts})
-    print(f"converted {n} frames from {args.src} to {args.out} ({args.to}) in "
+    print(f"converted {plural(n, 'frame')} from {args.src} to {args.out} ({args.to}) in "
           f"{time.perf_counter() - t0:.1f} s")
     if report:
-        print(f"poses from RGB-D odometry: {report['frames_in']} frames tracked, "
+        print(f"poses from RGB-D odometry: {plural(report['frames_in'], 'frame')} tracked, "
               f"{report['lost']} lost (left out), {report['relocalised']} relocalised, "
               f"{report['segments']} map segment(s)")
     return 0
@@ -135,10 +137,11 @@ def cmd_info(args: argparse.Namespace) -> int:
         valid.append(share)
         if med is not None:
             medians.append(med)
-    print(f"{args.bag}: {n} synchronised frames")
+    print(f"{args.bag}: {plural(n, 'synchronised frame')}")
     if first is not None:
         i = first.intrinsics
-        print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f}, semantic ground "
+        print(f"  size {i.width}x{i.height}, fx {i.fx:.1f} fy {i.fy:.1f} cx {i.cx:.1f} cy "
+              f"{i.cy:.1f}, semantic ground "
               f"truth in {with_gt} of {n} frames")
         # A wrong depth scale shows here first: an indoor scene is metres away.
         med = float(np.median(medians)) if medians else float("nan")
@@ -260,6 +263,18 @@ def _progress(it, total: int, desc: str):
 
 # ------------------------------------------------------------------ parser
 
+def _positive_int(text: str) -> int:
+    """argparse type: an integer of at least 1 (a scene of 0 frames is no bag to run)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``neurncd`` argument parser with one subparser per subcommand."""
     parser = argparse.ArgumentParser(
@@ -281,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("synth", help="generate a synthetic RGB-D scene with ground truth")
     p.add_argument("--seed", type=int, required=True)
-    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--frames", type=_positive_int, default=300)
     p.add_argument("--out", required=True, help="bag path (mcap/sqlite3) or Replica folder")
     p.add_argument("--format", choices=("mcap", "sqlite3", "replica"), default="mcap")
     p.add_argument("--width", type=int, default=None)
@@ -367,7 +382,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "it; writes metrics, label images and overlays")
     p.add_argument("--out", default="out/demo")
     p.add_argument("--seed", type=int, default=1001)
-    p.add_argument("--frames", type=int, default=300)
+    p.add_argument("--frames", type=_positive_int, default=300)
     _add_config_args(p)
     p.set_defaults(func=cmd_demo)
 
@@ -375,13 +390,17 @@ def build_parser() -> argparse.ArgumentParser:
                        "bench/results/<name>.json")
     p.add_argument("names", nargs="*", help="benchmark names (default: all)")
     p.set_defaults(func=cmd_bench)
+    for sp in sub.choices.values():  # an unknown option is named with its command's usage
+        sp.set_defaults(command_parser=sp)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``neurncd``: run one subcommand, return its exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     _log_above_progress_bars()
     with warnings.catch_warnings():
         # The engine's advice (a threshold tuned for another backbone, a suspicious depth

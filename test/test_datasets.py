@@ -201,3 +201,48 @@ def test_replica_errors_name_the_file(tmp_path):
     info.write_text("{not json")
     with pytest.raises(formats.FormatError, match=r"info\.json: not a Replica"):
         list(formats.read_folder(seq, class_info=info))
+
+
+def test_replica_id_map_must_cover_the_images_and_name_nyu13_ids(tmp_path):
+    """A user's id_map never turns ground truth into void by leaving an id out (a partial
+    map once voided 87 % of a scene's pixels without a word), and its targets are NYU-13."""
+    seq = _replica_folder(tmp_path, None)
+    partial = tmp_path / "partial.json"
+    partial.write_text(json.dumps({"93": 12, "40": 5}))
+    with pytest.raises(formats.FormatError, match=r"semantic_class_0\.png.*\[31\].*id_map"):
+        list(formats.read_folder(seq, id_map=partial))
+    full = tmp_path / "full.json"
+    full.write_text(json.dumps({"93": 12, "40": 5, "31": 13}))
+    s = next(formats.read_folder(seq, id_map=full)).semantic
+    assert s[0, W - 1] == 12 and s[H - 1, 0] == 5 and s[3, 3] == 13 and s[9, 25] == 0
+    wrong = tmp_path / "wrong.json"
+    wrong.write_text(json.dumps({"93": 200, "40": 5, "31": 13}))
+    with pytest.raises(formats.FormatError, match=r"wrong\.json.*\[200\].*not NYU-13"):
+        list(formats.read_folder(seq, id_map=wrong))
+    # Beside the scene's class file, id_map maps what the shipped table cannot name and
+    # the class file maps the rest.
+    info = tmp_path / "info.json"
+    info.write_text(json.dumps({"classes": [{"id": 93, "name": "wall"},
+                                            {"id": 40, "name": "floor"},
+                                            {"id": 31, "name": "space-heater"}]}))
+    with pytest.raises(formats.FormatError, match=r"space-heater.*\[31\].*id_map"):
+        list(formats.read_folder(seq, class_info=info))
+    heater = tmp_path / "heater.json"
+    heater.write_text(json.dumps({"31": 7}))
+    s = next(formats.read_folder(seq, class_info=info, id_map=heater)).semantic
+    assert s[0, W - 1] == classes.CLASS_ID["wall"] and s[3, 3] == classes.CLASS_ID["objects"]
+
+
+def test_replica_missing_files_are_named(tmp_path):
+    """A frame whose colour image is missing is skipped and one whose label image is
+    missing carries no ground truth: each said, not silently (conversion said "converted
+    44 frames" with one gone)."""
+    seq = _replica_folder(tmp_path, INFO)
+    (seq / "rgb" / "rgb_1.png").unlink()
+    with pytest.warns(UserWarning, match=r"1 frame\(s\) with depth but no rgb.*: 1$"):
+        assert len(list(formats.read_folder(seq))) == 1
+    seq = _replica_folder(tmp_path / "b", INFO)
+    (seq / "semantic_class" / "semantic_class_0.png").unlink()
+    with pytest.warns(UserWarning, match=r"1 frame\(s\) without semantic_class.*: 0$"):
+        frames = list(formats.read_folder(seq))
+    assert frames[0].semantic is None and frames[1].semantic is not None

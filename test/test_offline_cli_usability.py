@@ -103,6 +103,33 @@ def test_run_with_ground_truth_is_flagged_evaluated(tmp_path):
     assert len(list((out / "labels").glob("*.png"))) == result["labelled"]
 
 
+def test_run_saves_the_map_and_the_next_run_continues_it(tmp_path):
+    """mapper_node.map_path offline as on the mapper node: loaded if it exists, saved at
+    the end (it was ignored by neurncd run without a word)."""
+    from neurncd_ros import synth
+    from neurncd_ros.core.data.bag import write_bag
+
+    frames = list(synth.generate(1002, 16, synth.SynthConfig(width=160, height=120)))
+    write_bag(tmp_path / "a.mcap", frames[:8])
+    write_bag(tmp_path / "b.mcap", frames[8:])
+    map_file = tmp_path / "maps" / "room.pt"
+    common = ("--set", f"mapper_node.map_path={map_file}", "--set", "run.training_rate_hz=60",
+              "--set", "run.overlays=0")
+    r = neurncd("run", "--bag", tmp_path / "a.mcap", "--out", tmp_path / "a", *common)
+    assert r.returncode == 0, r.stdout + r.stderr
+    first = json.loads((tmp_path / "a" / "metrics.json").read_text())["map"]
+    assert first["loaded"] is None and first["saved"] and first["iterations"] > 0
+    assert map_file.is_file() and map_file.with_name("room.pt.spec.json").is_file()
+    assert f"no map at {map_file} yet" in r.stdout
+    r = neurncd("run", "--bag", tmp_path / "b.mcap", "--out", tmp_path / "b", *common)
+    assert r.returncode == 0, r.stdout + r.stderr
+    second = json.loads((tmp_path / "b" / "metrics.json").read_text())["map"]
+    assert second["loaded"]["iterations"] == first["iterations"]
+    assert second["loaded"]["keyframes"] >= 1
+    assert second["iterations"] > first["iterations"]
+    assert f"continued map {map_file} ({first['iterations']} iterations" in r.stdout
+
+
 def test_info_gives_the_depth_and_warns_when_it_is_no_indoor_scene(tmp_path):
     """`neurncd info` is where a user checks a bag: it gives the median depth, and a bag
     whose depth was written at the wrong scale (here five times too far, as ICL-NUIM read
@@ -401,3 +428,27 @@ def test_the_cli_logs_warnings_as_whole_lines_above_its_progress_bars(capsys):
     err = capsys.readouterr().err
     # The bar's line is cleared (carriage return) before the record is written whole.
     assert "\rframe 7: tracking lost against keyframe 2: too few inliers\n" in err, err
+
+
+def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_path):
+    """What a user typing the commands wrongly reads: the subcommand's own usage for an
+    unknown option, a hint to convert a dataset folder given as a bag, the reader options
+    beside the convert.* parameters, no empty scene, and an error on a line of its own."""
+    r = neurncd("run", "--bag", tmp_path / "x.mcap", "--frobnicate")
+    assert r.returncode == 2 and "usage: neurncd run" in r.stderr
+    assert "unrecognized arguments: --frobnicate" in r.stderr
+    folder = real_data_dir / "kinect_dining"
+    r = neurncd("run", "--bag", folder, "--out", tmp_path / "o")
+    assert r.returncode == 1
+    assert f"convert it into a bag first (neurncd convert {folder}" in r.stderr
+    r = neurncd("convert", folder, "--out", tmp_path / "k.mcap", "--opt", "idmap=m.json")
+    assert r.returncode == 2 and "idmap: unknown parameter" in r.stderr
+    assert "id_map, class_info" in r.stderr
+    r = neurncd("synth", "--seed", 1, "--frames", 0, "--out", tmp_path / "s.mcap")
+    assert r.returncode == 2 and "--frames: must be at least 1" in r.stderr
+    assert not (tmp_path / "s.mcap").exists()
+    r = neurncd("convert", folder, "--out", tmp_path / "k.mcap")
+    assert r.returncode == 0 and "converted 5 frames" in r.stdout
+    r = neurncd("convert", folder, "--out", tmp_path / "k.mcap")
+    assert r.returncode == 1
+    assert r.stderr.startswith("neurncd convert: error:") and "exists already" in r.stderr

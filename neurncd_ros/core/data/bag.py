@@ -269,12 +269,14 @@ def write_bag(path: str | Path, frames: Iterable[Frame], storage: str = "mcap",
     writes the pose on the pose topic, on /tf (world -> camera), both, or not at all
     (``none``: a bag like a camera's without localisation).
     """
-    it: Iterable[Frame] = frames
-    if progress:
-        from tqdm import tqdm
-        it = tqdm(frames, desc=f"write {Path(path).name}", unit="frame")
+    from tqdm import tqdm
+
     n = 0
-    with _BagWriter(path, storage, overwrite) as w:
+    # The bar starts once the output is open (a refused output is one clean line) and is
+    # closed on any error, so the error starts a line of its own.
+    with _BagWriter(path, storage, overwrite) as w, tqdm(
+            frames, desc=f"write {Path(path).name}", unit="frame",
+            disable=not progress) as it:
         for fr in it:
             try:
                 items = frame_messages(fr, topics, depth_encoding, color_encoding, pose_mode)
@@ -297,8 +299,25 @@ def _open(path: Path) -> Any:
         reader.open()
     except Exception as err:
         raise BagError(f"{_where(path)}: not a readable rosbag2 bag ({type(err).__name__}: "
-                       f"{err})") from None
+                       f"{err}){_dataset_hint(path)}") from None
     return reader
+
+
+def _dataset_hint(path: Path) -> str:
+    """For a dataset folder (or NYUv2 .mat) given where a bag belongs: how to make it one."""
+    from .formats import detect_kind
+
+    if path.is_file() and path.suffix.lower() == ".mat":
+        kind = "NYUv2 labelled"
+    elif path.is_dir() and not (path / "metadata.yaml").is_file():
+        try:
+            kind = detect_kind(path)
+        except Exception:  # not a dataset layout either: nothing to add
+            return ""
+    else:
+        return ""
+    return (f"; it looks like a {kind} dataset: convert it into a bag first (neurncd convert "
+            f"{path} --out scene.mcap)")
 
 
 def _where(path: Path) -> str:

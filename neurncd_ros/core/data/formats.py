@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Iterator, Sequence
 import numpy as np
 
 from ..frame import Frame
-from ..params import build
+from ..params import ConfigError, build
 from ..topics import Topics
 
 if TYPE_CHECKING:  # the bag module (rosbags) is imported when a bag is converted
@@ -63,7 +63,7 @@ from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS,  # 
                             read_tum_trajectory, read_matrix_rows, read_redwood_log,  # noqa: F401
                             read_redwood_intrinsics, _NUM_RE, _indexed,  # noqa: F401
                             DepthScaleCheck, opencv_axes)  # noqa: F401
-from .replica import (_as_lookup, NYU13_MARKER, _replica_lookup, read_replica,  # noqa: F401
+from .replica import (NYU13_MARKER, _replica_lookup, read_replica,  # noqa: F401
                       read_labels, _replica_stamps, _read_intrinsics_json,  # noqa: F401
                       _write_png, write_replica)  # noqa: F401
 from .tum import (_STAMP_RE, _stamp_of, seconds_to_ns, _tum_list, read_tum,  # noqa: F401
@@ -180,6 +180,11 @@ def detect_kind(folder: str | Path) -> str:
                       "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")
 
 
+READER_OPTIONS = ("id_map, class_info, semantic_ids (Replica), labelled, class_mapping "
+                  "(NYUv2 raw sequence or labelled .mat), trajectory (TUM)")
+"""The options :func:`read_folder` takes beside the :class:`FolderConfig` fields."""
+
+
 def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
                 trajectory: str | Path | None = None, with_poses: bool = True,
                 labelled: str | Path | None = None, class_mapping: str | Path | None = None,
@@ -197,7 +202,10 @@ def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
     """
     if kind not in KINDS:
         raise FormatError(f"unknown folder kind {kind!r}; known: {', '.join(KINDS)}")
-    cfg = build(FolderConfig, opts)
+    try:
+        cfg = build(FolderConfig, opts)
+    except ConfigError as err:
+        raise ConfigError(f"{err}; or a reader's own option: {READER_OPTIONS}") from None
     path = Path(path)
     if not path.exists():
         raise FormatError(f"{path}: no such file or folder")

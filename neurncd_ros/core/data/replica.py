@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import cv2
 import numpy as np
 
+from .. import classes
 from ..camera import Intrinsics
 from ..frame import Frame
 
@@ -18,29 +20,39 @@ from .folder_common import (FormatError, FolderConfig, _resolve, read_rgb, read_
                             _make_frame, _subsample, read_matrix_rows, _indexed)
 
 
-def _as_lookup(id_map: Any) -> np.ndarray | None:
-    """Class-id map (dict, JSON file of a dict, or array: source id -> target id) as a LUT."""
-    if id_map is None:
-        return None
+def _id_map_entries(id_map: Any) -> dict[int, int]:
+    """A class-id map (dict, JSON file of a dict, or 1-D array: source id -> NYU-13 id) as
+    a dict, every target checked to be a NYU-13 id (0 = void .. 13)."""
+    where = "id_map"
     if isinstance(id_map, (str, Path)):
+        where = f"id_map {id_map}"
         try:
             id_map = json.loads(Path(id_map).read_text())
         except (OSError, ValueError) as err:
             raise FormatError(f"{id_map}: id map must be a JSON object of source id -> "
-                              f"target id ({err})") from None
+                              f"NYU-13 id ({err})") from None
         if not isinstance(id_map, dict):
-            raise FormatError("id map file must hold a JSON object of source id -> target id")
+            raise FormatError(f"{where}: must hold a JSON object of source id -> NYU-13 id")
     if isinstance(id_map, dict):
-        lut = np.zeros(65536, dtype=np.uint16)
-        for k, v in id_map.items():
-            lut[int(k)] = int(v)
-        return lut
-    arr = np.asarray(id_map)
-    if arr.ndim != 1 or arr.size == 0 or arr.min() < 0 or arr.max() > 65535:
-        raise FormatError("id_map must be a dict or a 1-D array of ids in 0..65535")
-    lut = np.zeros(65536, dtype=np.uint16)
-    lut[: arr.size] = arr.astype(np.uint16)
-    return lut
+        try:
+            entries = {int(k): int(v) for k, v in id_map.items()}
+        except (TypeError, ValueError) as err:
+            raise FormatError(f"{where}: keys and values must be integer ids ({err})") from None
+    else:
+        arr = np.asarray(id_map)
+        if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
+            raise FormatError(f"{where}: must be a dict or a 1-D array of integer ids")
+        entries = {i: int(v) for i, v in enumerate(arr.tolist())}
+    bad_src = sorted(k for k in entries if not 0 <= k < 65535)
+    if bad_src:
+        raise FormatError(f"{where}: source id(s) {bad_src[:10]} out of 0..65534")
+    bad = sorted({v for v in entries.values() if not 0 <= v <= classes.NUM_CLASSES})
+    if bad:
+        raise FormatError(f"{where}: target id(s) {bad[:10]} are not NYU-13 ids (0 = void, "
+                          f"1..{classes.NUM_CLASSES}: "
+                          + ", ".join(f"{i} {n}" for i, n in enumerate(classes.NYU13_NAMES, 1))
+                          + ")")
+    return entries
 
 
 NYU13_MARKER = "semantic_nyu13.txt"
@@ -48,26 +60,48 @@ NYU13_MARKER = "semantic_nyu13.txt"
 
 
 def _replica_lookup(folder: Path, id_map: Any, semantic_ids: str,
-                    class_info: str | Path | None) -> np.ndarray | None:
-    """How a Replica folder's ``semantic_class`` ids become NYU-13 (None: they already are)."""
+                    class_info: str | Path | None) -> tuple[np.ndarray | None, str]:
+    """How a Replica folder's ``semantic_class`` ids become NYU-13 (None: they already are),
+    and what to name when an image holds an id the mapping lacks.
+
+    ``id_map`` entries override the scene's ``info_semantic.json`` where one is found (a
+    class name the shipped table does not know is then fine if id_map maps its ids), or
+    the ids of a folder that holds NYU-13 already; with neither, id_map alone maps, and an
+    id it does not list is an error (never silently void): 0 is void unless id_map says
+    otherwise."""
     from . import replica_classes as rc
 
     if semantic_ids not in ("auto", "nyu13", "replica"):
         raise FormatError(f"semantic_ids must be auto, nyu13 or replica, got {semantic_ids!r}")
-    if id_map is not None:
-        return _as_lookup(id_map)
+    entries = None if id_map is None else _id_map_entries(id_map)
     if semantic_ids == "nyu13" or (semantic_ids == "auto" and (folder / NYU13_MARKER).is_file()):
-        return None
+        if entries is None:
+            return None, ""
+        lut = np.full(65536, 65535, dtype=np.uint16)  # NYU-13 already: id_map remaps some
+        lut[: classes.NUM_CLASSES + 1] = np.arange(classes.NUM_CLASSES + 1)
+        for k, v in entries.items():
+            lut[k] = v
+        return lut, "NYU-13 or id_map"
     info = Path(class_info) if class_info else rc.find_class_info(folder)
-    if info is None:
+    if info is None and entries is None:
         raise FormatError(f"{folder}: semantic_class/ holds Replica class ids, but no "
                           "info_semantic.json was found beside it or in semantic_info/<scene>/ "
                           "above it; pass class_info=<path to the scene's info_semantic.json>, "
-                          "or semantic_ids=nyu13 if the images already hold NYU-13 ids")
-    try:
-        return rc.lookup_table(info)
-    except rc.ReplicaClassError as err:
-        raise FormatError(str(err)) from None
+                          "or id_map=<JSON file of Replica id -> NYU-13 id>, or "
+                          "semantic_ids=nyu13 if the images already hold NYU-13 ids")
+    if info is None:
+        lut = np.full(65536, 65535, dtype=np.uint16)
+        lut[0] = classes.VOID
+        source = "id_map (every id the images hold must be listed)"
+    else:
+        try:
+            lut = rc.lookup_table(info, mapped=set(entries or ()))
+        except rc.ReplicaClassError as err:
+            raise FormatError(str(err)) from None
+        source = f"{info}" + (" or id_map" if entries else "")
+    for k, v in (entries or {}).items():
+        lut[k] = v
+    return lut, source
 
 
 def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
@@ -97,8 +131,19 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
                           "rgb images")
     stamps = _replica_stamps(folder, len(poses), cfg)
     cam_file = folder / "intrinsics.json"
-    lut = _replica_lookup(folder, id_map, semantic_ids, class_info) if sems else None
-    for i in _subsample(sorted(rgbs), cfg):
+    lut, lut_source = (_replica_lookup(folder, id_map, semantic_ids, class_info) if sems
+                       else (None, ""))
+    no_rgb = sorted(set(depths) - set(rgbs))
+    if no_rgb:
+        warnings.warn(f"{folder}: {len(no_rgb)} frame(s) with depth but no rgb/rgb_<i>.png "
+                      f"skipped: {_id_list(no_rgb)}", stacklevel=2)
+    chosen = _subsample(sorted(rgbs), cfg)
+    no_gt = [i for i in chosen if i not in sems] if sems else []
+    if no_gt:
+        warnings.warn(f"{folder}: {len(no_gt)} frame(s) without semantic_class/"
+                      f"semantic_class_<i>.png carry no ground truth: {_id_list(no_gt)}",
+                      stacklevel=2)
+    for i in chosen:
         if i not in depths:
             raise FormatError(f"{folder}: depth/depth_{i}.png missing")
         if i >= len(poses):
@@ -115,12 +160,18 @@ def read_replica(folder: str | Path, cfg: FolderConfig = FolderConfig(),
         sem = read_labels(sems[i]) if i in sems else None
         if sem is not None and lut is not None:
             try:
-                sem = rc.to_nyu13(sem, lut, str(sems[i]))
+                sem = rc.to_nyu13(sem, lut, str(sems[i]), lut_source)
             except rc.ReplicaClassError as err:
                 raise FormatError(str(err)) from None
         inst = read_labels(insts[i]) if i in insts else None
         yield _make_frame(stamps[i], rgb, depth, poses[i], intr, f"{folder} frame {i}",
                           sem, inst)
+
+
+def _id_list(ids: list[int], most: int = 10) -> str:
+    """Frame numbers for a message: the first ``most``, then how many more."""
+    head = ", ".join(map(str, ids[:most]))
+    return head + (f" and {len(ids) - most} more" if len(ids) > most else "")
 
 
 def read_labels(path: Path) -> np.ndarray:

@@ -105,31 +105,39 @@ def read_class_info(path: str | Path) -> dict[int, str]:
     return out
 
 
-def lookup_table(info_path: str | Path) -> np.ndarray:
+def lookup_table(info_path: str | Path, mapped: set[int] = frozenset()) -> np.ndarray:
     """LUT (65536,) uint16: Replica class id of the scene -> NYU-13 id.
 
-    Ids the file does not list map to 65535, which :func:`to_nyu13` reports.
+    Ids the file does not list map to 65535, which :func:`to_nyu13` reports. ``mapped``:
+    ids the caller maps itself (a user's id_map), whose names need no entry here.
     """
     names = read_class_info(info_path)
-    unknown = sorted({n for n in names.values() if n not in REPLICA_TO_NYU13})
+    unknown = sorted({n for cid, n in names.items()
+                      if n not in REPLICA_TO_NYU13 and cid not in mapped})
     if unknown:
-        raise ReplicaClassError(f"{info_path}: Replica class name(s) {unknown} have no entry "
-                                "in the NYU-13 mapping (neurncd_ros/core/data/"
-                                "replica_classes.py); pass id_map to map them yourself")
+        ids = sorted(cid for cid, n in names.items() if n in unknown)
+        raise ReplicaClassError(f"{info_path}: Replica class name(s) {unknown} (id(s) "
+                                f"{ids[:10]}) have no entry in the NYU-13 mapping "
+                                "(neurncd_ros/core/data/replica_classes.py); map them with "
+                                "--opt id_map=<JSON file of id -> NYU-13 id>, e.g. "
+                                f"{{\"{ids[0]}\": 7}} for objects (the other ids keep the "
+                                "shipped mapping)")
     lut = np.full(65536, 65535, dtype=np.uint16)
     lut[0] = classes.VOID
     for cid, name in names.items():
         if not 0 <= cid < 65535:
             raise ReplicaClassError(f"{info_path}: class id {cid} out of 0..65534")
-        lut[cid] = REPLICA_TO_NYU13[name]
+        if name in REPLICA_TO_NYU13:
+            lut[cid] = REPLICA_TO_NYU13[name]
     return lut
 
 
-def to_nyu13(semantic: np.ndarray, lut: np.ndarray, where: str) -> np.ndarray:
-    """Map one ``semantic_class`` image; an id the class file does not know is an error."""
+def to_nyu13(semantic: np.ndarray, lut: np.ndarray, where: str,
+             source: str = "the scene's info_semantic.json") -> np.ndarray:
+    """Map one ``semantic_class`` image; an id the mapping does not know is an error
+    naming ``source`` (the class file, or the user's id_map)."""
     out = lut[semantic]
     if (out == 65535).any():
         bad = sorted(set(np.unique(semantic[out == 65535]).tolist()))[:10]
-        raise ReplicaClassError(f"{where}: Replica class id(s) {bad} are not in the scene's "
-                                "info_semantic.json")
+        raise ReplicaClassError(f"{where}: Replica class id(s) {bad} are not in {source}")
     return out

@@ -85,7 +85,9 @@ class MapperNodeConfig:
     (the field itself is under `mapper`)."""
 
     map_path: str = param("", "map file: loaded at start if it exists, saved every "
-                          "save_period_s and at shutdown ('' = none)")
+                          "save_period_s and at shutdown ('' = none); neurncd run too loads "
+                          "it and saves it at the end. The map is two files: this one and "
+                          "<map_path>.spec.json beside it")
     save_period_s: float = param(30.0, "save the map this often while running, so a killed "
                                  "mapper restarts from it (0 = only at shutdown)", lo=0.0,
                                  hi=86400.0, unit="s")

@@ -31,6 +31,7 @@ import numpy as np
 from .. import classes
 from ..frame import Frame
 from ..params import param
+from ..text import plural
 from .discovery import DiscoveryStage
 from .embedding import EmbeddingStage
 from .mapping import MapperStage
@@ -112,6 +113,15 @@ class OfflineEngine:
     @property
     def mapper(self):
         return self.mapping.mapper
+
+    def load_map(self, path: str | Path) -> dict[str, int]:
+        """Continue from a map the mapper node or ``neurncd run`` saved
+        (``mapper_node.map_path``: the file and its ``.spec.json``), as the mapper node
+        does at start; returns its iterations and keyframes."""
+        from ..field.mapper import Mapper
+
+        self.mapping.load(path, Mapper.load)
+        return {"iterations": self.mapper.iterations, "keyframes": len(self.mapper.buffer)}
 
     def _train_until(self, stamp_ns: int) -> None:
         due = int(self.cfg.run.training_rate_hz * (stamp_ns - self._t0) * 1e-9)
@@ -281,6 +291,8 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         _clear_stale(out / sub)
     t_start = time.perf_counter()
     engine = OfflineEngine(cfg)
+    map_path = cfg.mapper_node.map_path
+    loaded = engine.load_map(map_path) if map_path and Path(map_path).is_file() else None
     ev, ev_backbone = Evaluator(), Evaluator()
     tally = _ClassTally()
     n_labelled = n_keyframes = n_evaluated = n_overlays = n_overlays_gt = 0
@@ -322,6 +334,10 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
     if n_evaluated:
         result["metrics"] = ev.result()
         result["metrics_backbone_only"] = ev_backbone.result()
+    if map_path:
+        result["map"] = {"path": map_path, "loaded": loaded,
+                         "saved": engine.mapping.save(map_path),
+                         "iterations": mapper.iterations if mapper is not None else 0}
     if source is not None:
         result.update(source())
     (out / "metrics.json").write_text(json.dumps(result, indent=2, default=json_default))
@@ -381,8 +397,8 @@ def run_bag(bag: str | Path, cfg, out_dir: str | Path) -> dict[str, Any]:
 def summary(result: dict[str, Any]) -> str:
     """A few lines a person reads after a run: what ran, the scores or that nothing was
     scored, the classes the labels show, and what was written where."""
-    lines = [f"ran {result['frames']} frames ({result['labelled']} labelled, "
-             f"{result['keyframes_labelled']} of {result['keyframes']} keyframes) in "
+    lines = [f"ran {plural(result['frames'], 'frame')} ({result['labelled']} labelled, "
+             f"{result['keyframes_labelled']} of {plural(result['keyframes'], 'keyframe')}) in "
              f"{result['seconds']} s: backbone {result['seconds_backbone']} s, field "
              f"training {result['seconds_training']} s ({result['iterations']} iterations, "
              f"{result['backend']}), rendering {result['seconds_rendering']} s, discovery "
@@ -421,10 +437,19 @@ def summary(result: dict[str, Any]) -> str:
     if hidden:
         extra.append(f"{len(hidden)} novel id(s) held by discovery but in no label image")
     lines.append(line + ("; " + "; ".join(extra) if extra else ""))
+    m_info = result.get("map")
+    if m_info:
+        was = m_info["loaded"]
+        lines.append((f"continued map {m_info['path']} ({was['iterations']} iterations, "
+                      f"{was['keyframes']} keyframes)" if was else
+                      f"no map at {m_info['path']} yet: started a new one")
+                     + (f"; saved it ({m_info['iterations']} iterations)" if m_info["saved"]
+                        else "; nothing to save (no frame was embedded)"))
     out = result["out_dir"]
     n_ov, n_gt = result.get("overlays", 0), result.get("overlays_with_ground_truth", 0)
-    wrote = (f"wrote {out}/metrics.json, {out}/labels/<stamp>.png ({result['labelled']} "
-             "label images, 16-bit: 1-13 NYU-13, 100+ novel, 0 unlabelled)")
+    wrote = (f"wrote {out}/metrics.json, {out}/labels/<stamp>.png "
+             f"({plural(result['labelled'], 'label image')}, 16-bit: 1-13 NYU-13, 100+ novel, "
+             "0 unlabelled)")
     if n_ov:
         tiles = overlay_tiles(n_gt == n_ov) if n_gt in (0, n_ov) else \
             overlay_tiles(True).replace("ground truth", "ground truth (where the frame has "
