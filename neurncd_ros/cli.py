@@ -365,7 +365,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="the paper's Tables 1-3 on bags with ground truth "
                        "(runs the engine offline once per bag)")
     p.add_argument("--bag", action="append", required=True,
-                   help="bag with /camera/semantic/image_raw (repeat for several)")
+                   help="bag with /camera/semantic/image_raw (repeat for several); "
+                   "labelled frames without a ground-truth image are left out of the scores "
+                   "(eval.json: frames_evaluated of labelled)")
     p.add_argument("--ablation", action="store_true", help="add Table 3's ablation rows")
     p.add_argument("--baselines", action="store_true",
                    help="add the explicit-map baseline and Semantic-NeRF label propagation at "

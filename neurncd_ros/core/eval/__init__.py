@@ -4,7 +4,11 @@ ground truth, ablations and baselines, from one engine pass per bag.
 ``evaluate_frames`` drives the online engine (``core.engine.offline.OfflineEngine``)
 over a stream once and keeps, for every labelled frame, what the rows need (the
 rendered embedding and entropy, the backbone's logits, depth, pose, ground truth).
-Every row is then scored with the one ``discovery.metrics.Evaluator``:
+Every row is then scored with the one ``discovery.metrics.Evaluator``, on the
+labelled frames that have a ground-truth image (``frames_evaluated`` of ``labelled``
+per bag, as ``neurncd run`` does; a bag with none is an error naming it); each stage
+after the engine pass shows a progress bar named by the stage and the bag
+(``progress.py``):
 
 - ``full`` (GS+PSSN+EP+SE+MCL): the engine's own labels, what the live graph publishes;
 - ``gs_pssn_ep_mcl``: the same discovery stage with ``modulation.mode: entropy``

@@ -6,7 +6,7 @@ import dataclasses
 import json
 import math
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 
@@ -20,7 +20,11 @@ from ..engine.views import resize_to
 from ..engine.offline import json_default
 from ..frame import Frame
 from ..uncertainty import entropy as softmax_entropy
+from . import progress as progress_mod
 from . import semnerf, targets
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 ROWS = {
     "full": "GS+PSSN+EP+SE+MCL (ours, the engine's labels)",
@@ -33,6 +37,11 @@ ROWS = {
 ``semnerf.label_fractions``) follow them, titled by :func:`row_title`."""
 ABLATION_ROWS = ("full", "gs_pssn_ep_mcl", "gs", "pssn")
 BASELINE_ROWS = ("explicit",)
+PANELS = {"rgb": "colour", "gt": "ground truth", "backbone": "backbone",
+          "baseline": "explicit baseline", "ours": "ours"}
+"""The report grid's panels, left to right: key in a picture (and pictures.npz) -> title.
+A picture holds the baseline's panel only with ``--baselines``; eval.json
+``picture_panels`` records the panels the written pictures hold."""
 FIGURES = ("miou_known", "miou_novel", "miou_all", "total_acc", "avg_acc", "assigned_miou")
 VOXEL_SIZE = 0.05  # m, the explicit map's voxel edge
 GS_MAX_SEGMENTS = 1500  # segments MCL clusters for the GS row (the rest join the nearest)
@@ -52,15 +61,20 @@ def _row_order(row: str) -> tuple:
     return (len(ROWS), float(pct))
 
 
-def _check_gt(frame: Frame, n: int) -> None:
-    if frame.semantic is None:
-        raise ValueError(f"frame {n} (stamp {frame.stamp_ns}) has no ground truth: eval needs "
-                         "the semantic topic (NYU-13 ids) in the bag")
+def with_ground_truth(keep: dict) -> list[int]:
+    """Indices of the kept (labelled) frames that carry a ground-truth image: the frames
+    every row is scored on (a bag may lack it at some frames, as ``neurncd run`` allows)."""
+    return [i for i, g in enumerate(keep["semantic"]) if g is not None]
 
 
-def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bool = True
-            ) -> tuple[dict[str, list], dict]:
-    """One engine pass: per labelled frame what every row needs, plus run facts."""
+def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bool = True,
+            name: str = "") -> tuple[dict[str, list], dict]:
+    """One engine pass: per labelled frame what every row needs, plus run facts.
+
+    Labelled frames without ground truth are kept (the discovery re-runs, the explicit
+    map and the Semantic-NeRF fields see the stream the engine saw) and left out of
+    the scores; ``facts["frames_evaluated"]`` counts those with it. A stream none of
+    whose labelled frames has ground truth is a ValueError naming ``name``."""
     from ..engine.offline import OfflineEngine
 
     engine = OfflineEngine(cfg)
@@ -68,9 +82,11 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
         "rgb", "depth", "view_depth", "intr", "pose", "semantic", "embedding", "entropy", "logits",
         "full", "keyframe", "stamp", "iterations")}
     ids = None
-    for o in engine.run(frames, total, progress):
+    where = name or "the stream"
+    # The engine's own bar cannot name the bag: this one wraps its input instead.
+    bar = progress_mod.bar(total, "run", name, progress, iterable=frames)
+    for o in engine.run(bar, total, progress=False):
         f, v = o.frame, o.view
-        _check_gt(f, len(keep["stamp"]))
         h, w = f.depth.shape
         ids = o.embedding.spec.ids()
         S = o.view.spec.logit_channels
@@ -89,11 +105,22 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
         keep["keyframe"].append(bool(v.keyframe))
         keep["stamp"].append(f.stamp_ns)
         keep["iterations"].append(engine.mapper.iterations)
+        bar.set_postfix(iterations=engine.mapper.iterations,
+                        keyframes=len(engine.mapping.keyframe_stamps))
+    bar.close()
     if engine.frames_in == 0:
-        raise ValueError("no frames to evaluate (empty bag or no synchronised frames)")
+        raise ValueError(f"{where}: no frames to evaluate (empty bag or no synchronised "
+                         "frames)")
     if not keep["stamp"]:
-        raise ValueError(f"{engine.frames_in} frames read but none labelled")
+        raise ValueError(f"{where}: {engine.frames_in} frames read but none labelled")
+    scored = with_ground_truth(keep)
+    if not scored:
+        raise ValueError(f"{where}: none of its {len(keep['stamp'])} labelled frames has a "
+                         f"ground-truth image ({cfg.topics.semantic}, NYU-13 ids), so there "
+                         f"is nothing to score (`neurncd info` counts the frames with ground "
+                         f"truth)")
     facts = {"frames": engine.frames_in, "labelled": len(keep["stamp"]),
+             "frames_evaluated": len(scored),
              "keyframes": len(engine.mapping.keyframe_stamps),
              "iterations": engine.mapper.iterations if engine.mapper is not None else 0,
              "seconds": {k: round(v, 2) for k, v in engine.seconds.items()},
@@ -102,9 +129,12 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
 
 
 def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
-              embeddings: list | None = None, depth: str = "view_depth") -> list[np.ndarray]:
+              embeddings: list | None = None, depth: str = "view_depth", bar: tqdm | None = None
+              ) -> list[np.ndarray]:
     """The discovery stage (a fresh Discoverer) over the cached frames, segmenting
-    ``keep[depth]`` (the mapper's view depth, or ``"depth"``: the measured one)."""
+    ``keep[depth]`` (the mapper's view depth, or ``"depth"``: the measured one); every
+    labelled frame, with ground truth or not, as the engine's discovery saw them.
+    ``bar`` (a progress bar) advances one per frame."""
     c2i = np.asarray(keep["_c2i"])
     d = Discoverer(cfg.discovery, c2i, mcl_cfg=cfg.mcl, seg_cfg=cfg.segmentation,
                    mod_cfg=mod_cfg, fusion_cfg=cfg.label_fusion)
@@ -119,18 +149,21 @@ def _discover(keep: dict, cfg, mod_cfg, source: str = "rendered",
         rgb = keep["rgb"][i] if cfg.segmentation.colour_edges else None
         out.append(d.process(keep[depth][i], keep["intr"][i], emb, ent,
                              keep["stamp"][i], rgb, pose=keep["pose"][i]))
+        progress_mod.tick(bar)
     return out
 
 
-def geometry_only(keep: dict, cfg, seed: int = 0) -> list[np.ndarray]:
+def geometry_only(keep: dict, cfg, seed: int = 0, bar: tqdm | None = None) -> list[np.ndarray]:
     """GS alone: depth segments described by their world-frame mean normal and height,
-    clustered by the same MCL over all frames (novel-style ids >= 100, no names)."""
+    clustered by the same MCL over all frames (novel-style ids >= 100, no names).
+    ``bar`` advances one per frame segmented, then shows the clustering."""
     rng = np.random.default_rng(seed)
     segs, descs, owner = [], [], []
     for i in range(len(keep["stamp"])):
         depth, intr, pose = keep["view_depth"][i], keep["intr"][i], keep["pose"][i]
         seg = segment_depth(depth, intr, cfg.segmentation)
         segs.append(seg)
+        progress_mod.tick(bar)
         pts = points_image(depth, intr)
         valid = np.isfinite(pts).all(axis=2) & (depth > 0)
         nrm = surface_normals(np.nan_to_num(pts), valid.astype(np.float32), 5).transpose(1, 2, 0)
@@ -154,6 +187,8 @@ def geometry_only(keep: dict, cfg, seed: int = 0) -> list[np.ndarray]:
     if not descs:
         return [np.zeros_like(s, np.uint16) for s in segs]
     D = np.concatenate(descs).astype(np.float32)
+    if bar is not None:
+        bar.set_postfix_str(f"MCL over {min(len(D), GS_MAX_SEGMENTS)} segments")
     pick = rng.choice(len(D), size=min(len(D), GS_MAX_SEGMENTS), replace=False)
     cl = markov_cluster(D[pick], cfg.mcl) if pick.size > 1 else np.zeros(1, np.int64)
     _, cl = np.unique(cl, return_inverse=True)
@@ -213,21 +248,25 @@ class VoxelMap:
         return out
 
 
-def explicit_baseline(keep: dict, cfg) -> list[np.ndarray]:
+def explicit_baseline(keep: dict, cfg, bar: tqdm | None = None) -> list[np.ndarray]:
     """Backbone logits of every labelled frame fused in a voxel map; each frame's fused
     embedding and its entropy labelled by the same discovery stage on the measured depth
-    (no field, no mapper stage)."""
+    (no field, no mapper stage). Frames without ground truth are fused too: the map is
+    built from the stream, not from the labels. ``bar`` advances one per frame fused,
+    then one per frame labelled."""
     S = keep["logits"][0].shape[2]
     vm = VoxelMap(S)
     fused = []
     for i in range(len(keep["stamp"])):
         lg = keep["logits"][i].astype(np.float32)
-        if keep["pose"][i] is None:
-            fused.append(lg)
-            continue
-        vm.fuse(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg)
-        fused.append(vm.lookup(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg))
-    return _discover(keep, cfg, cfg.modulation, embeddings=fused, depth="depth")
+        if keep["pose"][i] is not None:
+            vm.fuse(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg)
+            lg = vm.lookup(keep["depth"][i], keep["intr"][i], keep["pose"][i], lg)
+        fused.append(lg)
+        progress_mod.tick(bar, phase="fuse")
+    if bar is not None:
+        bar.set_postfix(phase="label", refresh=False)
+    return _discover(keep, cfg, cfg.modulation, embeddings=fused, depth="depth", bar=bar)
 
 
 def _confusion(ev: Evaluator) -> list[list[int]]:
@@ -242,11 +281,19 @@ def _confusion(ev: Evaluator) -> list[list[int]]:
     return conf.tolist()
 
 
-def _score(preds: list[np.ndarray], gts: list[np.ndarray]) -> tuple[dict, Evaluator]:
+def _score(preds: list[np.ndarray], gts: list[np.ndarray | None]) -> tuple[dict, Evaluator]:
+    """One row's metrics over the frames that have ground truth (``None``: none)."""
     ev = Evaluator()
     for p, g in zip(preds, gts):
-        ev.update(p, g)
+        if g is not None:
+            ev.update(p, g)
     return ev.result(), ev
+
+
+def _stage(stage: str, total: int, name: str, progress: bool, unit: str = "frame"
+           ) -> tqdm:
+    """The progress bar of one ablation row or baseline of bag ``name``."""
+    return progress_mod.bar(total, stage, name, progress, unit=unit)
 
 
 def evaluate_frames(frames: Iterable[Frame], cfg, total: int | None = None,
@@ -254,47 +301,63 @@ def evaluate_frames(frames: Iterable[Frame], cfg, total: int | None = None,
                     keep_pictures: int = 4, name: str = "") -> dict[str, Any]:
     """Every row on one stream: {"rows": {row: metrics}, "curve", "confusion", ...}.
 
-    ``keep_pictures`` frames (evenly spaced) keep their images for the report grid."""
-    keep, facts = collect(frames, cfg, total, progress)
+    Rows are scored on the labelled frames that have ground truth (``frames_evaluated``
+    of ``labelled``); every stage after the engine pass shows a progress bar named by
+    the stage and ``name``. ``keep_pictures`` frames with ground truth (evenly spaced)
+    keep their images for the report grid, under the keys of :data:`PANELS`."""
+    keep, facts = collect(frames, cfg, total, progress, name)
     keep["_c2i"] = facts["channel_to_id"]
     c2i = np.asarray(facts["channel_to_id"])
     gts = keep["semantic"]
+    n = len(gts)
     preds: dict[str, list[np.ndarray]] = {"full": keep["full"]}
     preds["pssn"] = [c2i[lg.astype(np.float32).argmax(-1)].astype(np.uint16)
                      for lg in keep["logits"]]
     if ablation:
-        preds["gs_pssn_ep_mcl"] = _discover(
-            keep, cfg, dataclasses.replace(cfg.modulation, mode="entropy"))
-        preds["gs"] = geometry_only(keep, cfg)
+        with _stage("GS+PSSN+EP+MCL", n, name, progress) as bar:
+            preds["gs_pssn_ep_mcl"] = _discover(
+                keep, cfg, dataclasses.replace(cfg.modulation, mode="entropy"), bar=bar)
+        with _stage("GS alone", n, name, progress) as bar:
+            preds["gs"] = geometry_only(keep, cfg, bar=bar)
     semnerf_runs: dict[str, dict] = {}
     if baselines:
-        preds["explicit"] = explicit_baseline(keep, cfg)
+        with _stage("explicit map", 2 * n, name, progress, unit="step") as bar:
+            preds["explicit"] = explicit_baseline(keep, cfg, bar=bar)
         for f in cfg.semnerf.label_fractions:
             key = semnerf.row_key(f)
-            preds[key], semnerf_runs[key] = semnerf.semantic_nerf(keep, cfg, f,
-                                                                  facts["iterations"])
+            with _stage(semnerf.row_title(key).replace("Semantic-NeRF", "semnerf"), 2 * n,
+                        name, progress, unit="step") as bar:
+                preds[key], semnerf_runs[key] = semnerf.semantic_nerf(
+                    keep, cfg, f, facts["iterations"], bar=bar)
     rows, confusion = {}, None
     for row, p in preds.items():
         r, ev = _score(p, gts)
         rows[row] = r
         if row == "full":
             confusion = _confusion(ev)
-    # How discovery improves online: the engine's scores over the frames up to each keyframe.
+    # How discovery improves online: the engine's scores over the frames up to each
+    # keyframe (from the first keyframe with scored frames before it).
     curve, ev = [], Evaluator()
-    kf = 0
-    for i in range(len(gts)):
-        ev.update(keep["full"][i], gts[i])
+    kf = seen = 0
+    for i in range(n):
+        if gts[i] is not None:
+            ev.update(keep["full"][i], gts[i])
+            seen += 1
         if keep["keyframe"][i]:
             kf += 1
-            r = ev.result()
-            curve.append({"keyframes": kf, "miou_known": r["miou_known"],
-                          "miou_novel": r["miou_novel"], "miou_all": r["miou_all"]})
-    n = len(gts)
-    pick = sorted(set(np.linspace(0, n - 1, min(keep_pictures, n)).round().astype(int)
-                      .tolist())) if keep_pictures else []
-    pictures = [{"stamp": keep["stamp"][i], "rgb": keep["rgb"][i], "gt": gts[i],
-                 "backbone": preds["pssn"][i], "baseline": preds.get("explicit", [None] * n)[i],
-                 "ours": keep["full"][i]} for i in pick]
+            if seen:
+                r = ev.result()
+                curve.append({"keyframes": kf, "miou_known": r["miou_known"],
+                              "miou_novel": r["miou_novel"], "miou_all": r["miou_all"]})
+    scored = with_ground_truth(keep)
+    m = len(scored)
+    pick = sorted({scored[j] for j in np.linspace(0, m - 1, min(keep_pictures, m))
+                   .round().astype(int).tolist()}) if keep_pictures else []
+    images = {"rgb": keep["rgb"], "gt": gts, "backbone": preds["pssn"],
+              "baseline": preds.get("explicit"), "ours": keep["full"]}
+    pictures = [{"stamp": keep["stamp"][i],
+                 **{k: images[k][i] for k in PANELS if images[k] is not None}}
+                for i in pick]
     return {"name": name, **facts, "rows": rows, "curve": curve, "confusion": confusion,
             "pictures": pictures, "semnerf": semnerf_runs}
 
@@ -349,21 +412,43 @@ def aggregate(per_bag: list[dict]) -> dict[str, Any]:
     return out
 
 
-def _cell(ms: dict | None, pct: bool = True) -> str:
+def _cell(ms: dict | None, n_bags: int = 1) -> str:
+    """A figure over bags: "mean ± std"; a figure measured in fewer than all ``n_bags``
+    bags (a class in only some bags' ground truth) says in how many, so a lone bag's
+    value is not read as an average: "84.8 (1 bag)", "80.1 ± 2.0 (2 bags)"; "-" if in
+    none."""
     if not ms or ms.get("mean") is None:
         return "-"
-    s = f"{ms['mean']:.1f}"
-    return s + (f" ± {ms['std']:.1f}" if ms.get("n", 1) > 1 else "")
+    n = ms.get("n", 1)
+    s = f"{ms['mean']:.1f}" + (f" ± {ms['std']:.1f}" if n > 1 else "")
+    return s + (f" ({n} bag{'s' if n > 1 else ''})" if 0 < n < n_bags else "")
 
 
-def markdown_tables(agg: dict, n_bags: int) -> str:
-    """Tables 1-3 of the paper, laid out as there (percent; mean ± std over bags)."""
+def coverage(bags: list[dict]) -> list[str]:
+    """One line per bag whose labelled frames did not all have ground truth: the rows
+    were scored on the others only."""
+    out = []
+    for b in bags:
+        n, k = b.get("labelled", 0), b.get("frames_evaluated", b.get("labelled", 0))
+        if k < n:
+            out.append(f"{b.get('name') or b.get('bag', '?')}: evaluated on the {k} of {n} "
+                       "labelled frames that have ground truth")
+    return out
+
+
+def markdown_tables(agg: dict, n_bags: int, notes: Iterable[str] = ()) -> str:
+    """Tables 1-3 of the paper, laid out as there (percent; mean ± std over bags);
+    ``notes`` (e.g. :func:`coverage`) are said under the first line."""
     known = [int(c) for c in classes.KNOWN_IDS]
     novel = [int(c) for c in classes.NOVEL_IDS]
     names = [classes.class_name(c) for c in known + novel]
     lines = [f"Over {n_bags} bag(s); percent; mean ± std over bags where several (the "
-             "population standard deviation, ddof 0).", "",
-             "### Table 1: per-class IoU (9 known | 4 novel)", "",
+             "population standard deviation, ddof 0)" + (
+                 "; a figure measured in only some of the bags (a class in only some "
+                 "bags' ground truth) says in how many, e.g. \"84.8 (1 bag)\"; \"-\": "
+                 "in none." if n_bags > 1 else "."), ""]
+    lines += [f"{x}." for x in notes] + ([""] if notes else [])
+    lines += ["### Table 1: per-class IoU (9 known | 4 novel)", "",
              "| method | " + " | ".join(names[:len(known)]) + " | " +
              " | ".join(f"*{n}*" for n in names[len(known):]) + " |",
              "|---" * (1 + len(names)) + "|"]
@@ -371,7 +456,7 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
         if row == "gs":
             continue
         lines.append(f"| {row_title(row)} | " + " | ".join(
-            _cell(agg[row]["iou"][str(c)]) for c in known + novel) + " |")
+            _cell(agg[row]["iou"][str(c)], n_bags) for c in known + novel) + " |")
     lines += ["", "### Table 2: known / novel mIoU and accuracies", "",
               "| method | mIoU known | mIoU novel | mIoU all | Total Acc | Avg Acc | "
               "assigned mIoU (SCIM) |", "|---|---|---|---|---|---|---|"]
@@ -379,8 +464,8 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
         if row == "gs":
             continue
         a = agg[row]
-        lines.append(f"| {row_title(row)} | " + " | ".join(_cell(a[k]) for k in FIGURES)
-                     + " |")
+        lines.append(f"| {row_title(row)} | " + " | ".join(_cell(a[k], n_bags)
+                                                            for k in FIGURES) + " |")
     lines += ["", "### Table 3: ablation", "",
               "| GS | PSSN | EP | SE | MCL | mIoU known | mIoU novel | mIoU all | "
               "assigned mIoU |", "|---|---|---|---|---|---|---|---|---|"]
@@ -390,8 +475,8 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
         if row in agg:
             a = agg[row]
             lines.append(f"| {marks[row]} | " + " | ".join(
-                _cell(a[k]) for k in ("miou_known", "miou_novel", "miou_all",
-                                      "assigned_miou")) + " |")
+                _cell(a[k], n_bags) for k in ("miou_known", "miou_novel", "miou_all",
+                                              "assigned_miou")) + " |")
     lines += ["", "GS alone has no class names: its row is scored by SCIM's assigned mIoU "
               "(every cluster matched one-to-one to a ground-truth class); its named "
               "mIoUs only see the novel matching. The Semantic-NeRF rows are fields "
@@ -401,37 +486,54 @@ def markdown_tables(agg: dict, n_bags: int) -> str:
     return "\n".join(lines) + "\n"
 
 
+def picture_panels(per_bag: list[dict]) -> list[dict[str, str]]:
+    """The panels every kept picture holds, left to right, as ``{"key", "title"}``
+    (:data:`PANELS`): what the report's grid shows and its heading names."""
+    pics = [p for b in per_bag for p in b.get("pictures", [])]
+    return [{"key": k, "title": t} for k, t in PANELS.items()
+            if pics and all(p.get(k) is not None for p in pics)]
+
+
 def write_eval(out_dir: str | Path, per_bag: list[dict]) -> dict[str, Any]:
-    """DIR/eval.json, DIR/tables.md, DIR/pictures.npz (for ``neurncd report``)."""
+    """DIR/eval.json, DIR/tables.md, DIR/pictures.npz (for ``neurncd report``).
+
+    eval.json ``picture_panels`` names the panels of pictures.npz's grid rows, so the
+    report's heading says what the images hold (no baseline panel without
+    ``--baselines``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     agg = aggregate(per_bag)
     bags = [{k: v for k, v in b.items() if k != "pictures"} for b in per_bag]
     checked = targets.check(agg, bags)
+    panels = picture_panels(per_bag)
     result = {"bags": bags, "aggregate": agg, "rows": {r: row_title(r) for r in agg},
-              "targets": checked}
+              "targets": checked, "picture_panels": panels}
     (out / "eval.json").write_text(json.dumps(result, indent=1, default=json_default))
-    (out / "tables.md").write_text(markdown_tables(agg, len(per_bag)) + "\n"
-                                   + targets.markdown(checked))
+    (out / "tables.md").write_text(markdown_tables(agg, len(per_bag), coverage(bags))
+                                   + "\n" + targets.markdown(checked))
     pics = {}
     for bi, b in enumerate(per_bag):
         for pi, p in enumerate(b["pictures"]):
-            for k, v in p.items():
-                if v is not None:
-                    pics[f"b{bi}_p{pi}_{k}"] = np.asarray(v)
+            for k in ["stamp"] + [q["key"] for q in panels]:
+                pics[f"b{bi}_p{pi}_{k}"] = np.asarray(p[k])
     np.savez_compressed(out / "pictures.npz", **pics)
     return result
 
 
 def summary(result: dict) -> str:
     """A few lines after an eval."""
-    agg = result["aggregate"]
-    lines = [f"evaluated {len(result['bags'])} bag(s), "
-             f"{sum(b['labelled'] for b in result['bags'])} labelled frames"]
+    agg, bags = result["aggregate"], result["bags"]
+    n = len(bags)
+    labelled = sum(b["labelled"] for b in bags)
+    scored = sum(b.get("frames_evaluated", b["labelled"]) for b in bags)
+    lines = [f"evaluated {n} bag(s), {labelled} labelled frames"
+             + (f" ({scored} with ground truth, the frames scored)" if scored < labelled
+                else "")]
+    lines += [f"  {x}" for x in coverage(bags)]
     for row, a in agg.items():
-        lines.append(f"  {row_title(row):52s} known {_cell(a['miou_known'])}, novel "
-                     f"{_cell(a['miou_novel'])}, all {_cell(a['miou_all'])}, assigned "
-                     f"{_cell(a['assigned_miou'])}")
+        lines.append(f"  {row_title(row):52s} known {_cell(a['miou_known'], n)}, novel "
+                     f"{_cell(a['miou_novel'], n)}, all {_cell(a['miou_all'], n)}, assigned "
+                     f"{_cell(a['assigned_miou'], n)}")
     lines.append("issue 12 targets ('10 percent' read as 10 mIoU points):")
     lines += [f"  {x}" for x in targets.lines(result.get("targets")
                                              or targets.check(agg, result["bags"]))]

@@ -32,16 +32,29 @@ def _fig_png(fig) -> str:
     return base64.b64encode(b.getvalue()).decode()
 
 
-def _grid(pics: dict) -> list[str]:
-    """Rows colour | ground truth | backbone | baseline | ours, one per kept frame."""
-    keys = sorted({k.rsplit("_", 1)[0] for k in pics})
+def panels(res: dict, pics: dict) -> list[dict[str, str]]:
+    """The grid's panels, left to right (``{"key", "title"}``): eval.json
+    ``picture_panels`` as the eval wrote them; for an eval folder written before it
+    was recorded, the panels every picture in pictures.npz holds."""
+    if "picture_panels" in res:
+        return list(res["picture_panels"])
+    from .evaluate import PANELS
+
+    frames = {k.rsplit("_", 1)[0] for k in pics}
+    return [{"key": k, "title": t} for k, t in PANELS.items()
+            if frames and all(f"{f}_{k}" in pics for f in frames)]
+
+
+def _grid(pics: dict, parts: list[dict[str, str]]) -> list[str]:
+    """One row of the ``parts`` panels (colour as is, label images in the palette) per
+    kept frame."""
+    frames = sorted({k.rsplit("_", 1)[0] for k in pics})
     rows = []
-    for k in keys:
-        tiles = [pics[f"{k}_rgb"]]
-        for part in ("gt", "backbone", "baseline", "ours"):
-            if f"{k}_{part}" in pics:
-                tiles.append(classes.colourise(pics[f"{k}_{part}"]))
-        rows.append(_png(np.concatenate(tiles, axis=1)))
+    for f in frames:
+        tiles = [pics[f"{f}_{p['key']}"] if p["key"] == "rgb"
+                 else classes.colourise(pics[f"{f}_{p['key']}"]) for p in parts]
+        if tiles:
+            rows.append(_png(np.concatenate(tiles, axis=1)))
     return rows
 
 
@@ -106,10 +119,11 @@ def render(eval_dir: str | Path, out: str | Path | None = None, notes: str = "")
     if notes:
         parts.append(notes)
     parts.append(_md_to_html(md))
-    grid = _grid(pics)
+    shown = panels(res, pics)
+    grid = _grid(pics, shown)
     if grid:
-        parts.append("<h2>Sampled frames: colour | ground truth | backbone | explicit "
-                     "baseline | ours</h2>")
+        parts.append("<h2>Sampled frames: " + html.escape(" | ".join(
+            p["title"] for p in shown)) + "</h2>")
         parts += [f"<img src='data:image/png;base64,{g}'><br>" for g in grid]
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for b in res["bags"]:

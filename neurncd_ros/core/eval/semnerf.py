@@ -14,15 +14,19 @@ a labelled frame, so the replay sees the same buffer at every iteration).
 Labels: at each keyframe, ``fraction`` of its pixels are drawn once, uniformly among
 the pixels whose ground truth is a known class (all of them if there are fewer),
 from one ``numpy.random.Generator`` seeded by ``semnerf.label_seed``; novel-class
-and void pixels are never labels. A labelled pixel's target is its class one-hot,
-an unlabelled one is all zero (``losses.label_cross_entropy`` leaves it out).
+and void pixels are never labels. A keyframe without ground truth is added with no
+label: the supervision comes only from frames with ground truth (``keyframes`` and
+``keyframes_with_ground_truth`` in the facts count both). A labelled pixel's target
+is its class one-hot, an unlabelled one is all zero (``losses.label_cross_entropy``
+leaves it out).
 
-Scoring: each evaluation frame is rendered at its pose and measured depth at
-``mapper_node.render_scale`` from the field alone (no backbone fallback), its
-argmax over the known classes resized (nearest) to the frame and scored by the
-one ``discovery.metrics.Evaluator`` (its known-class mIoU is the row's figure;
-it has no novel class). ``label_fit`` is the share of the labelled pixels whose
-rendered class is their label: how well the field holds its own supervision.
+Scoring: each evaluation frame (a labelled frame with ground truth) is rendered at
+its pose and measured depth at ``mapper_node.render_scale`` from the field alone
+(no backbone fallback), its argmax over the known classes resized (nearest) to the
+frame and scored by the one ``discovery.metrics.Evaluator`` (its known-class mIoU
+is the row's figure; it has no novel class). ``label_fit`` is the share of the
+labelled pixels whose rendered class is their label: how well the field holds its
+own supervision.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -38,6 +43,10 @@ from .. import classes
 from ..camera import rays
 from ..frame import Frame
 from ..params import param
+from .progress import tick
+
+if TYPE_CHECKING:
+    from tqdm import tqdm
 
 ROW_PREFIX = "semnerf_"
 
@@ -143,10 +152,15 @@ def label_fit(mapper, keep: dict, labelled: list[tuple[int, np.ndarray]]) -> flo
     return hits / total if total else None
 
 
-def semantic_nerf(keep: dict, cfg, fraction, iterations: int, seed: int | None = None
-                  ) -> tuple[list[np.ndarray], dict]:
+def semantic_nerf(keep: dict, cfg, fraction, iterations: int, seed: int | None = None,
+                  bar: tqdm | None = None) -> tuple[list[np.ndarray], dict]:
     """Train one label-propagation field on the cached stream of :func:`evaluate.collect`
     (``iterations``: the engine field's total) and label every evaluation frame.
+
+    A keyframe without ground truth joins the field as the engine's did, with no label
+    (its photometric and depth terms only): the labels come only from keyframes with
+    ground truth. ``bar`` (a progress bar) advances one per frame trained up to, then
+    one per frame rendered.
 
     Returns the (H, W) uint16 NYU-13 label images and facts about the run."""
     f = check_fraction(fraction)
@@ -156,14 +170,21 @@ def semantic_nerf(keep: dict, cfg, fraction, iterations: int, seed: int | None =
     rng = np.random.default_rng(seed)
     labelled: list[tuple[int, np.ndarray]] = []
     n = len(keep["stamp"])
+    added = 0
     for i in range(n):
         if keep["keyframe"][i]:
-            lab = draw_labels(keep["semantic"][i], f, rng)
+            sem = keep["semantic"][i]
+            if sem is None:  # no ground truth: the same keyframe, without labels
+                lab = np.full(keep["depth"][i].shape, -1, np.int16)
+            else:
+                lab = draw_labels(sem, f, rng)
+                labelled.append((i, lab))
             mapper.add_keyframe(_frame(keep, i), one_hot(lab), force=True)
-            labelled.append((i, lab))
+            added += 1
         todo = keep["iterations"][i] - mapper.iterations
         if todo > 0 and len(mapper.buffer):
             mapper.step(todo)
+        tick(bar, phase="train", iterations=mapper.iterations)
     if iterations > mapper.iterations and len(mapper.buffer):
         mapper.step(iterations - mapper.iterations)
     t_train = time.perf_counter() - t0
@@ -172,16 +193,20 @@ def semantic_nerf(keep: dict, cfg, fraction, iterations: int, seed: int | None =
     s = cfg.mapper_node.render_scale
     for i in range(n):
         h, w = keep["depth"][i].shape
-        if not len(mapper.buffer):
-            preds.append(np.zeros((h, w), np.uint16))
-            continue
-        rh, rw = max(1, round(h * s)), max(1, round(w * s))
-        out = mapper.render(keep["pose"][i], keep["intr"][i], rh, rw, depth=keep["depth"][i])
-        lab = ids[out["embedding"].argmax(axis=2)].astype(np.uint16)
-        preds.append(cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST))
+        if not len(mapper.buffer) or keep["semantic"][i] is None:  # nothing to render
+            pred = np.zeros((h, w), np.uint16)  # or a frame no score reads: not rendered
+        else:
+            rh, rw = max(1, round(h * s)), max(1, round(w * s))
+            out = mapper.render(keep["pose"][i], keep["intr"][i], rh, rw,
+                                depth=keep["depth"][i])
+            lab = ids[out["embedding"].argmax(axis=2)].astype(np.uint16)
+            pred = cv2.resize(lab, (w, h), interpolation=cv2.INTER_NEAREST)
+        preds.append(pred)
+        tick(bar, phase="render", iterations=mapper.iterations)
     fit = label_fit(mapper, keep, labelled) if labelled else None
     counts = [int((lab >= 0).sum()) for _, lab in labelled]
-    info = {"fraction": f, "seed": int(seed), "keyframes": len(labelled),
+    info = {"fraction": f, "seed": int(seed), "keyframes": added,
+            "keyframes_with_ground_truth": len(labelled),
             "iterations": mapper.iterations,
             "labels_per_keyframe": float(np.mean(counts)) if counts else 0.0,
             "label_fit": fit, "seconds_training": round(t_train, 2),

@@ -124,10 +124,14 @@ def check(agg: dict, bags: list[dict]) -> list[dict[str, Any]]:
 
 
 def lines(targets: list[dict]) -> list[str]:
-    """One readable line per target (with the shortfall's reason where missed)."""
+    """One readable line per target (with the shortfall's reason where missed); a target
+    not measured says so once, with what would measure it."""
     out = []
     for t in targets:
-        state = {True: "met", False: "SHORT", None: "not measured"}[t["met"]]
+        if t["met"] is None:  # ``measured`` is then "not measured (run with ...)"
+            out.append(f"{t['target']}: {t['measured']}")
+            continue
+        state = "met" if t["met"] else "SHORT"
         s = f"{t['target']}: {state}; {t['measured']}"
         if t["margin"] is not None and t["met"] is False:
             s += f", short by {-t['margin']:.1f} points"
