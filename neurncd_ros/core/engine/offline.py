@@ -164,12 +164,12 @@ class OfflineEngine:
         self.mapping.labelled(frame.stamp_ns)
         return [Output(frame, rec, view, labels)]
 
-    def run(self, frames: Iterable[Frame], total: int | None = None, progress: bool = True
-            ) -> Iterator[Output]:
-        """:meth:`feed` over a stream, with a progress bar."""
+    def run(self, frames: Iterable[Frame], total: int | None = None, progress: bool = True,
+            desc: str = "run") -> Iterator[Output]:
+        """:meth:`feed` over a stream, with a progress bar named ``desc``."""
         from tqdm import tqdm
 
-        bar = tqdm(frames, total=total, desc="run", unit="frame", disable=not progress)
+        bar = tqdm(frames, total=total, desc=desc, unit="frame", disable=not progress)
         for frame in bar:
             if self.cfg.run.max_frames and self.frames_in >= self.cfg.run.max_frames:
                 break

@@ -83,9 +83,7 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
         "full", "keyframe", "stamp", "iterations")}
     ids = None
     where = name or "the stream"
-    # The engine's own bar cannot name the bag: this one wraps its input instead.
-    bar = progress_mod.bar(total, "run", name, progress, iterable=frames)
-    for o in engine.run(bar, total, progress=False):
+    for o in engine.run(frames, total, progress, desc=progress_mod.label("run", name)):
         f, v = o.frame, o.view
         h, w = f.depth.shape
         ids = o.embedding.spec.ids()
@@ -105,9 +103,6 @@ def collect(frames: Iterable[Frame], cfg, total: int | None = None, progress: bo
         keep["keyframe"].append(bool(v.keyframe))
         keep["stamp"].append(f.stamp_ns)
         keep["iterations"].append(engine.mapper.iterations)
-        bar.set_postfix(iterations=engine.mapper.iterations,
-                        keyframes=len(engine.mapping.keyframe_stamps))
-    bar.close()
     if engine.frames_in == 0:
         raise ValueError(f"{where}: no frames to evaluate (empty bag or no synchronised "
                          "frames)")
