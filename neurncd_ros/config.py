@@ -54,6 +54,9 @@ class ReplayConfig:
                                           "holds (colour, depth, camera info, pose) has a "
                                           "subscriber; then play anyway, with a warning (0 = "
                                           "do not wait)", lo=0.0, hi=3600.0, unit="s")
+    clock: bool = param(False, "publish rosgraph_msgs/Clock on /clock at the bag's time as it "
+                        "plays (ros2 bag play --clock), for nodes run with use_sim_time "
+                        "(bringup sets it when given -p use_sim_time:=true)")
     settle_s: float = param(1.0, "then wait until the number of subscribers on those topics "
                             "has not changed for this long (within wait_for_subscribers_s): "
                             "a second node still matching, or one whose side of the match "

@@ -422,3 +422,28 @@ def test_stale_fast_dds_shared_memory_is_removed_and_live_segments_are_kept(tmp_
     assert left == ["fastrtps_00000000000000bb", "fastrtps_00000000000000bb_el",
                     "fastrtps_00000000000000cc", "fastrtps_00000000000000cc_el"]
     assert not dead.exists() and live.exists() and young.exists()
+
+
+def test_a_node_that_receives_nothing_says_where_it_listens(executor_node, capfd):
+    """A node whose inputs never arrive (a topic name, namespace or remap wrong) says so
+    once, naming the topics as resolved and their publishers (a user audit's nodes under
+    -r __ns:=/robot1 waited 55 s in silence)."""
+    from neurncd_ros.nodes.common import InputWatch
+
+    node, _ = executor_node
+    import rclpy
+
+    ns = rclpy.create_node("watched", namespace="/robot1", context=node.context)
+    try:
+        watch = InputWatch(ns, ["camera/color/image_raw", "/camera/depth/image_raw"],
+                           after_s=0.0)
+        watch.check(received=3)
+        assert not watch.warned  # something arrived: nothing to say
+        watch.check(received=0)
+        watch.check(received=0)
+    finally:
+        ns.destroy_node()
+    err = capfd.readouterr().err
+    assert err.count("nothing received for 0 s on") == 1, err
+    assert "/robot1/camera/color/image_raw (0 publishers)" in err, err
+    assert "/camera/depth/image_raw (0 publishers)" in err and "topics.*" in err

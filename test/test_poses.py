@@ -161,6 +161,56 @@ def test_tf_poses_are_looked_up_at_each_frame_and_interpolated(walk):
         assert dt < 0.01 and dr < 0.5, (stamp, dt, dr)
 
 
+def test_a_slow_tf_edge_is_interpolated_as_tf2_does(walk):
+    """A robot's tree: map->odom from a localisation at 2 Hz, odom->camera at 30 Hz.
+    Every frame between two map->odom samples gets its pose (at the old 100 ms limit,
+    1 of 300 frames of such a stream got one)."""
+    cam = {f.stamp_ns: f.pose for f in walk}
+    drift = np.eye(4)
+    drift[:3, 3] = [0.5, -0.2, 0.0]
+
+    def poses(**node) -> dict:
+        cfg = config.default()
+        topics = dataclasses.replace(cfg.topics, world_frame="map", camera_frame="camera")
+        st = PoseStage(dataclasses.replace(cfg.mapper_node, pose_source="tf", **node),
+                       cfg.odometry, topics, Health("mapper", None, 1.0), clock=Clock())
+        got = []
+        for i, f in enumerate(walk):
+            if i % 15 == 0:  # 2 Hz
+                got += st.offer_tf(tf_msg(f.stamp_ns, [("map", "odom", drift)]), False)
+            got += st.offer_tf(tf_msg(f.stamp_ns, [("odom", "camera",
+                                                    invert_pose(drift) @ f.pose)]), False)
+            got += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+        return dict(got)
+
+    got = poses()
+    # Frames 0-15 lie between two map->odom samples; the later ones wait for the next.
+    assert len(got) == 16 and set(got) <= set(cam)
+    for stamp, T in got.items():
+        dt, dr = pose_distance(T, cam[stamp])
+        assert dt < 1e-6 and dr < 1e-4, (stamp, dt, dr)
+    assert len(poses(tf_max_gap_ms=100.0)) == 2  # only the frames at a map->odom sample
+
+
+def test_auto_gives_the_frames_before_the_first_tf_their_poses(walk):
+    """With pose_source auto, frames whose depth came before /tf linked the frames are
+    looked up once it does (they went without a pose: 10 of 300 with /tf 300 ms late)."""
+    st = _stage("auto")
+    cam = {f.stamp_ns: f.pose for f in walk}
+    got = []
+    for f in walk[:6]:  # /tf still silent
+        got += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+    assert st.mode is None and got == []
+    for i, f in enumerate(walk):
+        got += st.offer_tf(tf_msg(f.stamp_ns, [("world", "camera", f.pose)]), False)
+        if i >= 6:
+            got += st.offer_image("depth", f.stamp_ns, f.depth, f.intrinsics)
+    got = dict(got)
+    assert st.mode == "tf" and set(got) == set(cam)
+    for stamp, T in got.items():
+        assert pose_distance(T, cam[stamp])[0] < 1e-6
+
+
 def test_tf_without_tf2_msgs_is_a_clear_error_and_auto_skips_it():
     with pytest.raises(ValueError, match="tf2_msgs"):
         _stage("tf", tf_available=False)

@@ -62,7 +62,8 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     # topics.world_frame 'map', the bag's poses in 'world': the mapper publishes its
     # keyframe poses in the frame its poses come in.
     proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ros-args",
-                  "-p", f"mapper_node.map_path:={map_path}", "-p", "topics.world_frame:=map"],
+                  "-p", f"mapper_node.map_path:={map_path}", "-p", "topics.world_frame:=map",
+                  "-p", f"discovery_node.state_path:={tmp_path / 'discovery.pt'}"],
                  ros_env(domain), log, ignore_sigint=True)
     rclpy.init()
     labels, tables, keyframes = [], [], []
@@ -119,6 +120,57 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     shown = {str(int(i)): int(c) for i, c in zip(ids, counts) if i}
     assert {k: table.get(k, {}).get("pixels") for k in shown} == shown, (shown, table)
     assert "saved map to" in text  # at shutdown too
+    # Discovery's state too, with the novel ids of the last table.
+    from neurncd_ros.core.discovery.state import load_state
+    assert f"saved discovery state to {tmp_path / 'discovery.pt'}" in text
+    saved = load_state(tmp_path / "discovery.pt")["discovery"]
+    novel = sorted(int(k) for k, v in table.items() if v["kind"] == "novel")
+    assert set(novel) <= {k for k, _ in saved["discoverer"]["_novel_members"]["__dict__"]}
+
+
+def test_bringup_under_a_namespace_with_sim_time(scene_bag, tmp_path):
+    """A robot's launch: the graph in /robot1 (its diagnostics and labels relative names),
+    use_sim_time with the bag's clock. Bringup sees the nodes come up in their namespace,
+    replays with /clock, and stops once they have drained (it used to wait out
+    --ready-timeout in silence: it listened to /diagnostics, and on the ROS clock the
+    nodes' diagnostics timers never fired before the first /clock)."""
+    bag, frames = scene_bag
+    domain = rosutil.domain(9)
+    apply_ros_env(domain)
+    import rclpy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image
+
+    from neurncd_ros.nodes.common import output_qos, sensor_qos
+
+    log = tmp_path / "bringup.log"
+    proc = start(["-m", "neurncd_ros.nodes.bringup", "--bag", str(bag), "--ready-timeout",
+                  "600", "--ros-args", "-r", "__ns:=/robot1", "-p", "use_sim_time:=true",
+                  "-p", "topics.diagnostics:=diagnostics", "-p", "topics.labels:=neurncd/labels"],
+                 ros_env(domain), log)
+    rclpy.init()
+    labels, clock = [], []
+    try:
+        node = rclpy.create_node("test_listener")
+        node.create_subscription(Image, "/robot1/neurncd/labels", labels.append,
+                                 output_qos(100))
+        node.create_subscription(Clock, "/clock", clock.append, sensor_qos(10))
+        assert spin_until(node, lambda: labels, 150), log.read_text()[-3000:]
+        assert spin_until(node, lambda: proc.poll() is not None, 200), log.read_text()[-3000:]
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert proc.returncode == 0 and "the nodes have labelled what they received" in text, \
+        text[-3000:]
+    assert "replaying anyway" not in text
+    stamps = {f.stamp_ns for f in frames}
+    assert {msgconv.stamp_to_ns(m.header.stamp) for m in labels} <= stamps
+    assert clock and {msgconv.stamp_to_ns(c.clock) for c in clock} <= stamps
+    assert not _wait_gone(domain, 30), "node processes outlived bringup"
 
 
 def test_no_node_outlives_a_killed_bringup(scene_bag, tmp_path):

@@ -143,6 +143,7 @@ class StampSync:
         self.drops: collections.Counter = collections.Counter()
         self.drops_by_stream: collections.Counter = collections.Counter()
         self.groups = 0
+        self.received = 0  # messages offered, of every stream (nothing yet: wrong topics?)
         self.resets = 0
         self.last_stamp: int | None = None
         self._last_group_at = 0.0  # clock time of the group that set last_stamp
@@ -232,6 +233,7 @@ class StampSync:
         if stream not in self._pending:
             raise KeyError(f"unknown stream {stream!r}; streams: {self.streams}")
         stamp_ns = int(stamp_ns)
+        self.received += 1
         now = self._clock()
         self._expire(now)
         self._since_group[(stream, "received")] += 1

@@ -69,20 +69,37 @@ def build_commands(params_file: str, bag: str | None, ros_args: list[str]
     if bag:
         cmds["replay"] = [sys.executable, "-m", "neurncd_ros.nodes.replay", *base,
                           "-p", f"replay.bag:={bag}"]
+        if uses_sim_time(ros_args):  # the nodes' clocks follow the bag, as with --clock
+            cmds["replay"] += ["-p", "replay.clock:=true"]
     return cmds
+
+
+def uses_sim_time(ros_args: list[str]) -> bool:
+    """Whether the ROS arguments set ``use_sim_time`` true (``-p use_sim_time:=true``)."""
+    return any(a.replace(" ", "").lower() in ("use_sim_time:=true", "use_sim_time:=1")
+               for a in ros_args)
 
 
 class DrainWatcher:
     """Listens to /diagnostics in a thread; tells when every node has nothing pending."""
 
-    def __init__(self, topic: str) -> None:
+    def __init__(self, topic: str, ros_args: list[str] = ()) -> None:
+        """``ros_args``: the nodes' ROS arguments; their namespace and remappings apply here
+        too, so a relative or remapped diagnostics topic is the one the nodes publish on
+        (under ``-r __ns:=/robot1`` the watcher once listened to another topic and the
+        bag waited for --ready-timeout)."""
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
 
         self._context = rclpy.Context()
-        rclpy.init(context=self._context, args=["bringup"],
+        remaps = []
+        for i, a in enumerate(ros_args):
+            if a in ("-r", "--remap") and i + 1 < len(ros_args):
+                remaps += ["-r", ros_args[i + 1]]
+        rclpy.init(context=self._context,
+                   args=["bringup", *(["--ros-args", *remaps] if remaps else [])],
                    signal_handler_options=SignalHandlerOptions.NO)
         self.node = rclpy.create_node("bringup", context=self._context)
         self._latest: dict[str, tuple[float, int]] = {}
@@ -190,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
         if problem:
             raise ConfigError(problem)
         topic = config_mod.load(args.params_file).topics.diagnostics
+        for i, a in enumerate(ros_args[:-1]):  # -p topics.diagnostics:=... beside the file
+            if a in ("-p", "--param") and ros_args[i + 1].startswith("topics.diagnostics:="):
+                topic = ros_args[i + 1].split(":=", 1)[1]
     except ConfigError as err:
         print(f"bringup: configuration error: {err}", file=sys.stderr)
         return 2
@@ -198,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bringup: warning: {warning}", file=sys.stderr)
     _clean_shm(60.0)  # what earlier runs' killed processes left
     shutdown.started()
-    watcher = DrainWatcher(topic)
+    watcher = DrainWatcher(topic, ros_args)
     cmds = build_commands(args.params_file, args.bag, ros_args)
     replay_cmd = cmds.pop("replay", None)
     procs: dict[str, subprocess.Popen] = {}

@@ -239,6 +239,44 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
 
 # ---------------------------------------------------------------- QoS
 
+def wall_timer(node: Any, period_s: float, callback: Callable[[], Any]) -> Any:
+    """A node timer on the steady (wall) clock: diagnostics, housekeeping and map saves
+    keep their pace with ``use_sim_time`` whether or not /clock runs (on the node's ROS
+    clock they never fired before the first /clock message, nor while a bag is paused)."""
+    from rclpy.clock import Clock, ClockType
+
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
+class InputWatch:
+    """Says once, as a warning, when a node has received nothing at all on its inputs
+    ``after_s`` after it started: the topics as resolved (namespace, remaps) and how many
+    publishers each has, so a wrong name or namespace shows at once instead of a graph
+    that waits in silence (the partial-input warnings need some input to arrive)."""
+
+    def __init__(self, node: Any, topics: list[str], after_s: float = 10.0) -> None:
+        self.node, self.topics, self.after_s = node, list(topics), after_s
+        self.started = time.monotonic()
+        self.warned = False
+
+    def check(self, received: int) -> None:
+        """Call on the node's diagnostics tick with its count of messages received."""
+        if self.warned or received or time.monotonic() - self.started < self.after_s:
+            return
+        self.warned = True
+        parts = []
+        for topic in self.topics:
+            try:
+                name = self.node.resolve_topic_name(topic)
+            except Exception:  # noqa: BLE001 - an invalid name was refused at start anyway
+                name = topic
+            parts.append(f"{name} ({self.node.count_publishers(name)} publishers)")
+        self.node.get_logger().warning(
+            f"nothing received for {self.after_s:g} s on {', '.join(parts)}: check the topic "
+            "names (topics.* parameters, the namespace, remaps) and that the camera or the "
+            "upstream node runs")
+
+
 def sensor_qos(depth: int = 5):
     """Best effort, keep last: accepts both camera drivers and reliable publishers."""
     from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy

@@ -16,7 +16,7 @@ import json
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
-                     ros_logger, run_node, view_qos)
+                     ros_logger, run_node, view_qos, wall_timer, InputWatch)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Segments each rendered view's depth into convex segments, clusters them on "
@@ -69,7 +69,8 @@ def make_node():
             self.pub_color = self.create_publisher(Image, t.labels_color, output_qos())
             self.pub_classes = self.create_publisher(String, t.classes, latched_qos())
             self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, 10)
-            self.create_timer(1.0, self.publish_diagnostics)
+            self.input_watch = InputWatch(self, [t.rendered_embedding, t.view_depth])
+            wall_timer(self, 1.0, self.publish_diagnostics)
             self.worker = Worker("discovery", self.step, self.health).start()
 
         @staticmethod
@@ -117,9 +118,22 @@ def make_node():
             self.pub_classes.publish(String(data=json.dumps(
                 {str(k): v for k, v in rec.classes.items()})))
             self.health.count("published")
+            self._save_state(force=False)
             return True
 
+        def _save_state(self, force: bool) -> None:
+            """The discovery state to discovery_node.state_path (on the labelling thread,
+            between views: nothing changes it meanwhile)."""
+            try:
+                if self.stage.save_state(force) and force:
+                    self.get_logger().info(f"saved discovery state to "
+                                           f"{self.stage.node_cfg.state_path}")
+            except (OSError, RuntimeError, TypeError) as err:
+                self.health.problem("state_save", f"cannot save the discovery state to "
+                                    f"{self.stage.node_cfg.state_path}: {err}")
+
         def publish_diagnostics(self) -> None:
+            self.input_watch.check(self.stage.sync.received)
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
             # Whether the mapper is seen yet: bringup starts a bag only then.
             self.health.gauge("upstream_publishers",
@@ -129,6 +143,7 @@ def make_node():
 
         def close(self) -> None:
             self.worker.stop()
+            self._save_state(force=True)
             c = self.health.counts
             self.get_logger().info(f"views received {c['views_received']}, labelled "
                                    f"{c['labelled']}, problems {dict(self.health.problems)}")

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (diagnostics_msg, header_ns, image_msg, input_image_type, latched_qos,
-                     output_qos, ros_logger, run_node, sensor_qos)
+                     output_qos, ros_logger, run_node, sensor_qos, wall_timer,
+                     InputWatch)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Runs the RGB-D semantic segmentation backbone on the newest colour+depth pair "
@@ -67,7 +68,8 @@ def make_node():
                                      self.on_color, q)
             self.create_subscription(input_image_type(self.topics.depth), self.topics.depth,
                                      self.on_depth, q)
-            self.create_timer(1.0, self.publish_diagnostics)
+            self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth])
+            wall_timer(self, 1.0, self.publish_diagnostics)
             self.worker = Worker("backbone", self.step, self.health).start()
 
         def on_color(self, msg) -> None:
@@ -107,6 +109,7 @@ def make_node():
             return True
 
         def publish_diagnostics(self) -> None:
+            self.input_watch.check(self.stage.sync.received)
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy))
             self.pub_diag.publish(diagnostics_msg(self, [(self.health, ("pairs",
                                                                         "published"))]))

@@ -30,7 +30,8 @@ import threading
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, input_image_type,
-                     latched_qos, pose_msg, ros_logger, run_node, sensor_qos, view_qos)
+                     latched_qos, pose_msg, ros_logger, run_node, sensor_qos, view_qos,
+                     wall_timer, InputWatch)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
@@ -138,9 +139,11 @@ def make_node():
             self.pub_diag = self.create_publisher(DiagnosticArray, self.topics.diagnostics, 10)
             self.create_service(Trigger, "~/save_map", self.on_save)
             self.create_service(Trigger, "~/reset", self.on_reset)
-            self.create_timer(1.0, self.on_tick)
+            self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth,
+                                                 self.topics.embedding])
+            wall_timer(self, 1.0, self.on_tick)
             if self.node_cfg.map_path and self.node_cfg.save_period_s > 0:
-                self.create_timer(self.node_cfg.save_period_s, self.autosave)
+                wall_timer(self, self.node_cfg.save_period_s, self.autosave)
             if self.spec is not None:
                 self.pub_spec.publish(String(data=self.spec.to_json()))
             self.worker = Worker("render", self.step, self.health).start()
@@ -327,6 +330,7 @@ def make_node():
             return True
 
         def on_tick(self) -> None:
+            self.input_watch.check(self.stage.sync.received + len(self.intake))
             if not self.stage.check_training():
                 self.worker.cancel.set()  # no stale output after the field died
             backlog = len(self.intake) + int(self.intake_worker.busy)

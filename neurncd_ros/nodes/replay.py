@@ -6,7 +6,8 @@ takes serialized messages), so nothing is decoded on the way and any message
 type the bag holds is replayed. Before playing it waits, at most
 ``replay.wait_for_subscribers_s``, until the contract's input topics in the bag
 have subscribers; then it plays at ``rate`` from ``start_offset_s`` and exits 0
-at the end of the bag (``loop`` plays it again until stopped). A bag that
+at the end of the bag (``loop`` plays it again until stopped); with ``clock`` it
+publishes the bag's time on /clock as it goes, for nodes with ``use_sim_time``. A bag that
 cannot be read (missing, truncated, corrupt) ends it with exit code 1 and an
 error naming the file.
 """
@@ -70,6 +71,11 @@ def make_node():
                         message_class(msgtype), topic, qos)
                 except ValueError as err:
                     self.get_logger().warning(f"{topic} is not replayed: {err}")
+            self.pub_clock = None
+            if self.cfg.clock:
+                from rosgraph_msgs.msg import Clock
+                self.pub_clock = self.create_publisher(Clock, "/clock", output_qos(10))
+                self._clock_msg = Clock()
             self.in_bag = sum(count for topic, (_, count) in topics.items()
                               if topic in self.publishers_by_topic)
             self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
@@ -137,6 +143,10 @@ def make_node():
                 delay = due - time.monotonic()
                 if delay > 0 and self._stop.wait(delay):
                     return
+                if self.pub_clock is not None:  # the bag's time, before what happened then
+                    self._clock_msg.clock.sec, self._clock_msg.clock.nanosec = divmod(stamp,
+                                                                                      10 ** 9)
+                    self.pub_clock.publish(self._clock_msg)
                 pub.publish(raw)
                 self.published += 1
                 self.published_in_pass += 1

@@ -740,6 +740,8 @@ class FrameReader:
             except LookupError as err:
                 text = str(err.args[0]) if err.args else repr(err)
                 kind = "bad pose" if text.startswith("invalid sample") else "missing pose"
+                if "no sample within" in text and not self.max_gap:
+                    text += " (set sync.max_pose_gap_ns to interpolate between samples)"
                 return f"{kind}: {source}: {text}", None
             except ValueError as err:
                 return f"bad pose: {err}", None

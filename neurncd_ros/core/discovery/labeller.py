@@ -317,6 +317,50 @@ class Discoverer:
         if self.fusion is not None:
             self.fusion.reset()
 
+    _NOT_STATE = ("cfg", "mcl_cfg", "seg_cfg", "mod_cfg", "_novel_mcl", "fusion",
+                  "channel_to_id", "S")
+
+    def _made_for(self) -> dict:
+        """What a saved state must match to be continued: the embedding's classes, the
+        segment descriptor's make-up and the label fusion's voxels (thresholds may
+        change between sessions)."""
+        from ..params import to_dict
+
+        fusion = None if self.fusion is None else (self.fusion.cfg.voxel_size,
+                                                   self.fusion.cfg.coarse_voxel_size)
+        return {"channel_to_id": [int(i) for i in self.channel_to_id],
+                "modulation": to_dict(self.mod_cfg), "label_fusion_voxels": fusion}
+
+    def state(self) -> dict:
+        """Everything discovery has learnt (segment memory, clusters, novel ids, the label
+        fusion) as plain data for :func:`.state.save_state`."""
+        from .state import fields_state, to_plain
+
+        return {"made_for": to_plain(self._made_for()),
+                "discoverer": fields_state(self, self._NOT_STATE),
+                "fusion": None if self.fusion is None else self.fusion.state()}
+
+    def restore(self, state: dict) -> None:
+        """Continue from :meth:`state`: the same novel ids for the same objects. A state
+        made for other classes, descriptors or voxels is a ValueError naming it."""
+        from .state import from_plain, restore_fields
+
+        want, got = self._made_for(), from_plain(state["made_for"])
+        for key in want:
+            if got.get(key) != want[key]:
+                raise ValueError(f"the saved discovery state was made with {key} "
+                                 f"{got.get(key)}, this configuration has {want[key]}")
+        if (state["fusion"] is None) != (self.fusion is None):
+            raise ValueError("the saved discovery state differs in label_fusion.enabled")
+        restore_fields(self, state["discoverer"], {"_mem": _Memory})
+        if self.fusion is not None:
+            self.fusion.restore(state["fusion"])
+
+    @property
+    def novel_ids(self) -> list[int]:
+        """The novel ids discovery holds now, ascending."""
+        return sorted(self._novel_members)
+
     @property
     def memory_len(self) -> int:
         return 0 if self._mem is None else len(self._mem)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
 import threading
 import time
 from typing import Any, Callable
@@ -50,6 +51,14 @@ class DiscoveryNodeConfig:
                             "view's own size", lo=0, hi=8192, unit="px")
     spec_wait_s: float = param(30.0, "how long views wait for the embedding spec before "
                                "they are dropped", lo=0.0, hi=3600.0, unit="s")
+    state_path: str = param("", "discovery state file: loaded at start if it exists (a "
+                            "restarted node keeps its novel ids for the same objects), saved "
+                            "every save_period_s and at shutdown; neurncd run loads it and "
+                            "saves it at the end ('' = none: each start numbers novel "
+                            "classes from 100 again)")
+    save_period_s: float = param(30.0, "with state_path: save the state this often while "
+                                 "labelling (0 = only at shutdown)", lo=0.0, hi=86400.0,
+                                 unit="s")
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
@@ -98,6 +107,14 @@ class DiscoveryStage:
         self.spec: EmbeddingSpec | None = None
         self.discoverer = None
         self._queue: collections.deque[ViewInput] = collections.deque()
+        # A saved state (state_path) waits for the embedding spec, which makes the
+        # discoverer; a file that cannot be read is an error here, at start.
+        self._saved_state = None
+        self._last_save = clock()
+        path = node_cfg.state_path
+        if path and os.path.isfile(path):
+            from ..discovery.state import load_state
+            self._saved_state = load_state(path)
         self._lock = threading.Lock()
         self.health.set_state("waiting", "no view yet")
 
@@ -114,6 +131,36 @@ class DiscoveryStage:
                                          seg_cfg=c.segmentation, mod_cfg=c.modulation,
                                          fusion_cfg=c.label_fusion)
             self.spec = spec
+            saved, self._saved_state = self._saved_state, None
+            if saved is not None:
+                try:
+                    self.discoverer.restore(saved["discovery"])
+                except (KeyError, ValueError) as err:
+                    self.health.problem("state_not_continued", f"{self.node_cfg.state_path}:"
+                                        f" not continued ({err}); discovery starts afresh "
+                                        "and the next save replaces it", level=2)
+                else:
+                    d = self.discoverer
+                    self.health.note("state", f"continued discovery state "
+                                     f"{self.node_cfg.state_path}: {d.memory_len} segments, "
+                                     f"novel ids {d.novel_ids}")
+
+    def save_state(self, force: bool = True) -> bool:
+        """Save the discovery state to ``state_path`` (when due, unless ``force``); False
+        when there is no path or nothing learnt yet. Call it from the thread that labels."""
+        path = self.node_cfg.state_path
+        if not path or self.discoverer is None:
+            return False
+        now = self._clock()
+        period = self.node_cfg.save_period_s
+        if not force and (period <= 0 or now - self._last_save < period):
+            return False
+        from ..discovery.state import save_state
+
+        save_state(path, {"discovery": self.discoverer.state()})
+        self._last_save = now
+        self.health.count("state_saves")
+        return True
 
     # ------------------------------------------------------------ online input
     def offer(self, stream: str, stamp_ns: int, value: Any) -> bool:

@@ -10,8 +10,8 @@ Which views are rendered, in this order (``next_view``):
    what it needs, however late it is; only when more than
    ``max_queued_keyframes`` wait is the oldest dropped, reported as
    ``keyframes_dropped``);
-2. otherwise the newest frame: a frame that arrives before the previous one
-   was rendered replaces it (counted ``skipped_newer``), and a frame that waited
+2. otherwise the newest frame: a frame (or keyframe) that arrives before the previous
+   one was rendered replaces it (counted ``skipped_newer``), and a frame that waited
    longer than ``stale_after_s`` is dropped (``skipped_stale``). Frames that
    are not rendered are not labelled; the count is in the diagnostics.
 
@@ -208,9 +208,11 @@ class MapperNodeConfig:
                                   "often (stamp time), so steps stay short when the embedding "
                                   "node falls behind (0 = embedded frames only)", lo=0.0,
                                   hi=60.0, unit="s")
-    tf_max_gap_ms: float = param(100.0, "pose_source tf: interpolate each /tf edge between "
-                                 "samples at most this far apart", lo=0.0, hi=10000.0,
-                                 unit="ms")
+    tf_max_gap_ms: float = param(1000.0, "pose_source tf: interpolate each /tf edge between "
+                                 "samples at most this far apart (tf2 interpolates across "
+                                 "any gap; a localisation's map->odom at 1-2 Hz needs 500-"
+                                 "1000; at 100 a 2 Hz edge left 1 of 300 frames a pose)",
+                                 lo=0.0, hi=10000.0, unit="ms")
     sync_tolerance_ms: float = param(20.0, "max stamp difference between colour, depth, pose "
                                      "and embedding", lo=0.0, hi=1000.0, unit="ms")
     sync_horizon_s: float = param(2.0, "how long a colour, depth or pose waits for its "
@@ -386,6 +388,12 @@ class MapperStage:
                 self.keyframe_stamps.append(frame.stamp_ns)
                 self.health.count("keyframes")
                 self._keyframe_jobs.append(job)
+                if self._latest is not None:
+                    # Rendered after this keyframe, the older frame would reach discovery
+                    # out of order (dropped there, its in-flight slot held until the
+                    # timeout): a newer frame came first.
+                    self.health.count("skipped_newer")
+                    self._latest = None
                 if len(self._keyframe_jobs) > self.cfg.max_queued_keyframes:
                     old = self._keyframe_jobs.popleft()
                     self.health.problem("keyframes_dropped", f"keyframe {old.frame.stamp_ns} "

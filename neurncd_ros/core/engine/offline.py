@@ -338,6 +338,12 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         result["map"] = {"path": map_path, "loaded": loaded,
                          "saved": engine.mapping.save(map_path),
                          "iterations": mapper.iterations if mapper is not None else 0}
+    state_path = cfg.discovery_node.state_path
+    if state_path:
+        result["discovery_state"] = {"path": state_path,
+                                     "saved": engine.discovery.save_state(),
+                                     "novel_ids": engine.discovery.discoverer.novel_ids
+                                     if engine.discovery.discoverer is not None else []}
     if source is not None:
         result.update(source())
     (out / "metrics.json").write_text(json.dumps(result, indent=2, default=json_default))

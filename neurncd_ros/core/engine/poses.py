@@ -110,6 +110,8 @@ class PoseStage:
         else:
             return None
         self.mode = mode
+        if mode != "tf":
+            self._tf_pending.clear()
         if mode != "odometry":
             self._held.clear()
             self._wanted.clear()
@@ -158,6 +160,10 @@ class PoseStage:
                 self._tf_pending.append(int(stamp_ns))
                 return self._lookup_pending()
             return []
+        if mode is None and stream == "depth" and self.tf_available:
+            # Undecided: /tf may come later than the first frames; they are looked up
+            # once it links the frames (as with pose_source tf), not lost.
+            self._tf_pending = (self._tf_pending + [int(stamp_ns)])[-4 * self.cfg.queue_size:]
         # odometry, or still undecided: track anyway, so a late decision loses nothing
         out = []
         for stamp, g in self.sync.add(stream, stamp_ns, image):
@@ -233,7 +239,9 @@ class PoseStage:
                                                   self.topics.camera_frame, stamp, skew, gap)))
             except LookupError as err:
                 if newest - stamp > int(self.cfg.sync_horizon_s * 1e9):
-                    self.health.problem("no_tf", f"frame {stamp} has no pose: {err}")
+                    hint = (" (an edge published less often: raise mapper_node.tf_max_gap_ms "
+                            "above its period)" if "interpolate" in str(err) else "")
+                    self.health.problem("no_tf", f"frame {stamp} has no pose: {err}{hint}")
                 else:
                     keep.append(stamp)
         self._tf_pending = keep[-4 * self.cfg.queue_size:]

@@ -1,0 +1,76 @@
+"""Discovery's state survives a restart: saved, read back weights-only, and continued, a
+discoverer labels the next views exactly as the one that never stopped (the same novel
+ids for the same objects; a restarted node once reused id 101, tv before, for a picture)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from neurncd_ros import config, synth
+from neurncd_ros.core.discovery.state import load_state, save_state
+from neurncd_ros.core.engine.discovery import DiscoveryStage
+from neurncd_ros.core.engine.offline import OfflineEngine
+from neurncd_ros.core.torchfile import TorchFileError
+
+
+@pytest.fixture(scope="module")
+def views():
+    """The mapper stage's views of a held-out scene with novel objects (every labelled
+    frame of 3 s at 160x120)."""
+    cfg = config.default()
+    engine = OfflineEngine(cfg)
+    frames = synth.generate(2001, 90, synth.SynthConfig(width=160, height=120))
+    return cfg, [o.view for o in engine.run(frames, progress=False)]
+
+
+def test_a_continued_state_labels_as_the_discoverer_that_never_stopped(views, tmp_path):
+    cfg, vs = views
+    k = len(vs) // 2
+    path = tmp_path / "state" / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path))
+    running = DiscoveryStage(cfg, node_cfg)
+    for v in vs[:k]:
+        running.label_view(v)
+    assert running.save_state() and path.is_file()
+    assert running.discoverer.novel_ids, "the scene's first half shows novel objects"
+    restarted = DiscoveryStage(cfg, node_cfg)  # reads the file; continues on the spec
+    fresh = DiscoveryStage(cfg, cfg.discovery_node)
+    differs = 0
+    for v in vs[k:]:
+        a, b = running.label_view(v), restarted.label_view(v)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        assert a.classes == b.classes
+        c = fresh.label_view(v)
+        differs += not np.array_equal(a.labels, c.labels)
+    assert restarted.health.counts["note.state"] == 1
+    assert differs, "a discoverer without the state labels the second half differently"
+
+
+def test_a_state_for_other_classes_is_not_continued(views, tmp_path):
+    cfg, vs = views
+    path = tmp_path / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path))
+    stage = DiscoveryStage(cfg, node_cfg)
+    stage.label_view(vs[0])
+    state = stage.discoverer.state()
+    state["made_for"]["__dict__"] = [[k, [1, 2] if k == "channel_to_id" else v]
+                                     for k, v in state["made_for"]["__dict__"]]
+    save_state(path, {"discovery": state})
+    other = DiscoveryStage(cfg, node_cfg)
+    other.label_view(vs[0])
+    assert other.health.problems["state_not_continued"] == 1
+    assert other.discoverer.memory_len == stage.discoverer.memory_len  # afresh, one view
+
+
+def test_a_bad_state_file_is_one_clear_error(tmp_path):
+    path = tmp_path / "discovery.pt"
+    path.write_bytes(b"\x00" * 100)
+    cfg = config.default()
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path))
+    with pytest.raises(TorchFileError, match="discovery state"):
+        DiscoveryStage(cfg, node_cfg)
+    save_state(path, {"discovery": {}})
+    assert load_state(path)["version"] == 1
