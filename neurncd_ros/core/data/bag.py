@@ -305,7 +305,7 @@ def _open(path: Path) -> Any:
 
 def _dataset_hint(path: Path) -> str:
     """For a dataset folder (or NYUv2 .mat) given where a bag belongs: how to make it one."""
-    from .formats import detect_kind
+    from .folder_common import detect_kind
 
     if path.is_file() and path.suffix.lower() == ".mat":
         kind = "NYUv2 labelled"

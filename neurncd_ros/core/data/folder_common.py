@@ -395,3 +395,23 @@ def _indexed(folder: Path, prefix: str) -> dict[int, Path]:
                 if m and p.name[len(prefix):].startswith(m.group(1)):
                     out[int(m.group(1))] = p
     return out
+
+
+def detect_kind(folder: str | Path) -> str:
+    """Which folder layout ``folder`` holds (replica, tum, posetxt, redwood)."""
+    f = Path(folder)
+    if not f.is_dir():
+        raise FormatError(f"{f}: not a folder")
+    if (f / "traj_w_c.txt").is_file() and (f / "rgb").is_dir():
+        return "replica"
+    if (f / "trajectory.log").is_file():
+        return "redwood"
+    if (f / "pose.txt").is_file() and (f / "color").is_dir():
+        return "posetxt"
+    if (f / "groundtruth.txt").is_file() or (f / "rgb.txt").is_file():
+        return "tum"
+    if any(f.glob("r-*.ppm")) and any(f.glob("d-*.pgm")):
+        return "nyu"
+    raise FormatError(f"{f}: unknown layout (expected traj_w_c.txt + rgb/ (replica), "
+                      "trajectory.log (redwood), pose.txt + color/ (posetxt), "
+                      "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")

@@ -55,6 +55,7 @@ if TYPE_CHECKING:  # the bag module (rosbags) is imported when a bag is converte
 
 # Every name of the family modules is re-exported: callers import them from formats.
 from .folder_common import (KINDS, IMAGE_EXTS, FormatError, Preset, PRESETS,  # noqa: F401
+                            detect_kind,  # noqa: F401
                             DEFAULT_PRESET, FolderConfig, _resolve, read_rgb,  # noqa: F401
                             read_raw16, nyu_disparity_to_metres, sun_rotated_to_raw,  # noqa: F401
                             decode_depth, read_depth, _camera, camera_preset,  # noqa: F401
@@ -159,26 +160,6 @@ def read_single(color: str | Path, depth: str | Path, preset: str = "tum",
 
 
 # ---------------------------------------------------------------- dispatch
-
-def detect_kind(folder: str | Path) -> str:
-    """Which folder layout ``folder`` holds (replica, tum, posetxt, redwood)."""
-    f = Path(folder)
-    if not f.is_dir():
-        raise FormatError(f"{f}: not a folder")
-    if (f / "traj_w_c.txt").is_file() and (f / "rgb").is_dir():
-        return "replica"
-    if (f / "trajectory.log").is_file():
-        return "redwood"
-    if (f / "pose.txt").is_file() and (f / "color").is_dir():
-        return "posetxt"
-    if (f / "groundtruth.txt").is_file() or (f / "rgb.txt").is_file():
-        return "tum"
-    if any(f.glob("r-*.ppm")) and any(f.glob("d-*.pgm")):
-        return "nyu"
-    raise FormatError(f"{f}: unknown layout (expected traj_w_c.txt + rgb/ (replica), "
-                      "trajectory.log (redwood), pose.txt + color/ (posetxt), "
-                      "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")
-
 
 READER_OPTIONS = ("id_map, class_info, semantic_ids (Replica), labelled, class_mapping "
                   "(NYUv2 raw sequence or labelled .mat), trajectory (TUM)")

@@ -205,25 +205,6 @@ class LabelFusion:
     def __len__(self) -> int:
         return int(self._keys.size)
 
-    def state(self) -> dict:
-        """The votes, aliases and their evidence as plain data (:mod:`.state`)."""
-        from .state import fields_state
-
-        return {"fields": fields_state(self, ("cfg", "_coarse")),
-                "coarse": None if self._coarse is None else self._coarse.state()}
-
-    def restore(self, state: dict) -> None:
-        """Continue from :meth:`state` (a map of the same voxel sizes)."""
-        from .state import restore_fields
-
-        restore_fields(self, state["fields"], {})
-        if (self._coarse is None) != (state["coarse"] is None):
-            raise ValueError("the saved label fusion has "
-                             f"{'no' if state['coarse'] is None else 'a'} coarse map; "
-                             "label_fusion.coarse_voxel_size differs")
-        if self._coarse is not None:
-            self._coarse.restore(state["coarse"])
-
     @property
     def aliases(self) -> dict[int, int]:
         """Novel id -> the novel id it is published as (``alias_share``)."""

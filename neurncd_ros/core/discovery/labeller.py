@@ -334,16 +334,16 @@ class Discoverer:
     def state(self) -> dict:
         """Everything discovery has learnt (segment memory, clusters, novel ids, the label
         fusion) as plain data for :func:`.state.save_state`."""
-        from .state import fields_state, to_plain
+        from .state import fields_state, fusion_state, to_plain
 
         return {"made_for": to_plain(self._made_for()),
                 "discoverer": fields_state(self, self._NOT_STATE),
-                "fusion": None if self.fusion is None else self.fusion.state()}
+                "fusion": None if self.fusion is None else fusion_state(self.fusion)}
 
     def restore(self, state: dict) -> None:
         """Continue from :meth:`state`: the same novel ids for the same objects. A state
         made for other classes, descriptors or voxels is a ValueError naming it."""
-        from .state import from_plain, restore_fields
+        from .state import from_plain, restore_fields, restore_fusion
 
         want, got = self._made_for(), from_plain(state["made_for"])
         for key in want:
@@ -354,7 +354,7 @@ class Discoverer:
             raise ValueError("the saved discovery state differs in label_fusion.enabled")
         restore_fields(self, state["discoverer"], {"_mem": _Memory})
         if self.fusion is not None:
-            self.fusion.restore(state["fusion"])
+            restore_fusion(self.fusion, state["fusion"])
 
     @property
     def novel_ids(self) -> list[int]:

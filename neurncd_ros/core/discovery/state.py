@@ -93,6 +93,26 @@ def restore_fields(obj: Any, state: dict[str, Any], make: dict[str, type]) -> No
         setattr(obj, name, value)
 
 
+def fusion_state(fusion: Any) -> dict[str, Any]:
+    """A :class:`~.fusion.LabelFusion`'s votes, aliases and their evidence (and its coarse
+    map's) as plain data."""
+    coarse = fusion._coarse
+    return {"fields": fields_state(fusion, ("cfg", "_coarse")),
+            "coarse": None if coarse is None else fusion_state(coarse)}
+
+
+def restore_fusion(fusion: Any, state: dict[str, Any]) -> None:
+    """Continue a :class:`~.fusion.LabelFusion` from :func:`fusion_state` (a map of the
+    same voxel sizes)."""
+    restore_fields(fusion, state["fields"], {})
+    coarse = fusion._coarse
+    if (coarse is None) != (state["coarse"] is None):
+        raise ValueError(f"the saved label fusion has {'no' if state['coarse'] is None else 'a'}"
+                         " coarse map; label_fusion.coarse_voxel_size differs")
+    if coarse is not None:
+        restore_fusion(coarse, state["coarse"])
+
+
 def save_state(path: str | Path, state: dict[str, Any]) -> None:
     """Write atomically: a node killed mid-save leaves the previous file."""
     path = Path(path)
