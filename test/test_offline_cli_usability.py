@@ -104,8 +104,8 @@ def test_run_with_ground_truth_is_flagged_evaluated(tmp_path):
 
 
 def test_run_saves_the_map_and_the_next_run_continues_it(tmp_path):
-    """mapper_node.map_path offline as on the mapper node: loaded if it exists, saved at
-    the end (it was ignored by neurncd run without a word)."""
+    """mapper_node.map_path and discovery_node.state_path offline as on the nodes: loaded
+    if they exist, saved at the end (the map was ignored by neurncd run without a word)."""
     from neurncd_ros import synth
     from neurncd_ros.core.data.bag import write_bag
 
@@ -113,8 +113,9 @@ def test_run_saves_the_map_and_the_next_run_continues_it(tmp_path):
     write_bag(tmp_path / "a.mcap", frames[:8])
     write_bag(tmp_path / "b.mcap", frames[8:])
     map_file = tmp_path / "maps" / "room.pt"
+    state_file = tmp_path / "maps" / "discovery.pt"
     common = ("--set", f"mapper_node.map_path={map_file}", "--set", "run.training_rate_hz=60",
-              "--set", "run.overlays=0")
+              "--set", "run.overlays=0", "--set", f"discovery_node.state_path={state_file}")
     r = neurncd("run", "--bag", tmp_path / "a.mcap", "--out", tmp_path / "a", *common)
     assert r.returncode == 0, r.stdout + r.stderr
     first = json.loads((tmp_path / "a" / "metrics.json").read_text())["map"]
@@ -128,6 +129,11 @@ def test_run_saves_the_map_and_the_next_run_continues_it(tmp_path):
     assert second["loaded"]["keyframes"] >= 1
     assert second["iterations"] > first["iterations"]
     assert f"continued map {map_file} ({first['iterations']} iterations" in r.stdout
+    first_state = json.loads((tmp_path / "a" / "metrics.json").read_text())["discovery_state"]
+    second_state = json.loads((tmp_path / "b" / "metrics.json").read_text())["discovery_state"]
+    assert first_state["continued_novel_ids"] is None and first_state["saved"]
+    assert second_state["continued_novel_ids"] == first_state["novel_ids"]
+    assert f"continued discovery state {state_file}" in r.stdout
 
 
 def test_info_gives_the_depth_and_warns_when_it_is_no_indoor_scene(tmp_path):

@@ -110,6 +110,7 @@ class DiscoveryStage:
         # A saved state (state_path) waits for the embedding spec, which makes the
         # discoverer; a file that cannot be read is an error here, at start.
         self._saved_state = None
+        self.continued: list[int] | None = None  # the novel ids a loaded state brought
         self._last_save = clock()
         path = node_cfg.state_path
         if path and os.path.isfile(path):
@@ -141,6 +142,7 @@ class DiscoveryStage:
                                         "and the next save replaces it", level=2)
                 else:
                     d = self.discoverer
+                    self.continued = d.novel_ids
                     self.health.note("state", f"continued discovery state "
                                      f"{self.node_cfg.state_path}: {d.memory_len} segments, "
                                      f"novel ids {d.novel_ids}")

@@ -341,6 +341,7 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
     state_path = cfg.discovery_node.state_path
     if state_path:
         result["discovery_state"] = {"path": state_path,
+                                     "continued_novel_ids": engine.discovery.continued,
                                      "saved": engine.discovery.save_state(),
                                      "novel_ids": engine.discovery.discoverer.novel_ids
                                      if engine.discovery.discoverer is not None else []}
@@ -451,6 +452,14 @@ def summary(result: dict[str, Any]) -> str:
                       f"no map at {m_info['path']} yet: started a new one")
                      + (f"; saved it ({m_info['iterations']} iterations)" if m_info["saved"]
                         else "; nothing to save (no frame was embedded)"))
+    d_info = result.get("discovery_state")
+    if d_info:
+        was = d_info["continued_novel_ids"]
+        lines.append((f"continued discovery state {d_info['path']} (novel ids {was})"
+                      if was is not None else
+                      f"no discovery state at {d_info['path']} yet: started afresh")
+                     + (f"; saved it (novel ids {d_info['novel_ids']})" if d_info["saved"]
+                        else "; nothing to save (no view was labelled)"))
     out = result["out_dir"]
     n_ov, n_gt = result.get("overlays", 0), result.get("overlays_with_ground_truth", 0)
     wrote = (f"wrote {out}/metrics.json, {out}/labels/<stamp>.png "
