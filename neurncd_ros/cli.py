@@ -74,15 +74,20 @@ def cmd_synth(args: argparse.Namespace) -> int:
                                    **({"height": args.height} if args.height else {})},
                  prefix="synth.")
     out = Path(args.out)
+    if out.exists() and not args.overwrite:  # before the progress bar starts
+        print(f"neurncd synth: error: {out}: exists already; remove it, or overwrite it "
+              "(--overwrite)", file=sys.stderr)
+        return 1
     t0 = time.perf_counter()
     frames = synth.generate(args.seed, args.frames, scfg)
     frames = _progress(frames, args.frames, f"synth seed {args.seed}")
     if args.format == "replica":
         from .core.data.formats import write_replica
-        n = write_replica(out, frames)
+        n = write_replica(out, frames, overwrite=args.overwrite)
     else:
         from .core.data.bag import write_bag
-        n = write_bag(out, frames, storage=args.format, topics=cfg.topics)
+        n = write_bag(out, frames, storage=args.format, topics=cfg.topics,
+                      overwrite=args.overwrite)
     print(f"wrote {plural(n, 'frame')} of seed {args.seed} ({scfg.width}x{scfg.height}, "
           f"depth noise {scfg.depth_noise}) to {out} as {args.format} in "
           f"{time.perf_counter() - t0:.1f} s")
@@ -299,6 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=_positive_int, default=300)
     p.add_argument("--out", required=True, help="bag path (mcap/sqlite3) or Replica folder")
     p.add_argument("--format", choices=("mcap", "sqlite3", "replica"), default="mcap")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output (only once the new one is complete)")
     p.add_argument("--width", type=int, default=None)
     p.add_argument("--height", type=int, default=None)
     _add_config_args(p)
@@ -326,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="source: the input's own poses; odometry: estimate them from the "
                    "images (odometry.* parameters), for inputs without poses")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace an existing output bag (a failed conversion leaves none)")
+                   help="replace an existing output (bag, Replica or TUM folder) once the new "
+                   "one is complete: a conversion that fails leaves the old one as it was")
     p.add_argument("--tf-parent", default=None, help="with a /tf bag: the world frame "
                    "(replaces sync.tf_parent)")
     p.add_argument("--tf-child", default=None, help="with a /tf bag: the camera frame "

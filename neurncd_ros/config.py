@@ -394,7 +394,8 @@ def parse_overrides(pairs: list[str] | None, option: str = "--set") -> dict[str,
     out = {}
     for pair in pairs or []:
         if "=" not in pair:
-            raise ConfigError(f"{option} {pair!r}: expected section.key=value")
+            form = "section.key=value" if option == "--set" else "key=value"
+            raise ConfigError(f"{option} {pair!r}: expected {form}")
         key, raw = pair.split("=", 1)
         out[key.strip()] = yaml.safe_load(raw)
     return out

@@ -74,3 +74,26 @@ def test_a_bad_state_file_is_one_clear_error(tmp_path):
         DiscoveryStage(cfg, node_cfg)
     save_state(path, {"discovery": {}})
     assert load_state(path)["version"] == 1
+
+
+def test_a_refused_state_is_kept_aside_and_a_folder_is_refused_at_start(views, tmp_path):
+    """A state not continued (another configuration: one mistyped -p) is kept beside as
+    <path>.not-continued, not overwritten by the next save; a folder as the path is an
+    error at start, not a traceback at the first save after minutes of labelling."""
+    cfg, vs = views
+    path = tmp_path / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path))
+    stage = DiscoveryStage(cfg, node_cfg)
+    stage.label_view(vs[0])
+    stage.save_state()
+    saved = path.read_bytes()
+    other_cfg = config.load(None, {"modulation.colour_weight": 0.0})
+    other = DiscoveryStage(other_cfg, node_cfg)
+    other.label_view(vs[0])
+    assert other.health.problems["state_not_continued"] == 1
+    assert "colour_weight" in other.state_refused and "not-continued" in other.state_refused
+    other.save_state()
+    assert (tmp_path / "discovery.pt.not-continued").read_bytes() == saved
+    folder = dataclasses.replace(cfg.discovery_node, state_path=str(tmp_path))
+    with pytest.raises(TorchFileError, match="is a folder: give a file path"):
+        DiscoveryStage(cfg, folder)

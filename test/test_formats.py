@@ -291,3 +291,36 @@ def test_pose_at_exact_interpolated_nearest():
         sync.pose_at(times, [a, b], 150, 10, max_gap_ns=99)
     with pytest.raises(LookupError, match="invalid sample: broken"):
         sync.pose_at(times, [a, "broken"], 201, 10)
+
+
+def test_an_output_is_replaced_only_by_a_complete_one(tmp_path):
+    """A conversion that fails leaves an existing output as it was and nothing beside it
+    (a failed `convert --overwrite` deleted the old bag; a Replica folder was rewritten
+    in place without --overwrite, and a failed one left empty folders)."""
+    from neurncd_ros.core.data import bag
+
+    frames = make_frames()
+    bad = make_frames()
+    bad[1].pose = None  # a frame the writers refuse, mid-stream
+    for name, write, is_kind in (
+            ("b.mcap", lambda p, fr, ow: bag.write_bag(p, fr, overwrite=ow), "metadata.yaml"),
+            ("rep", lambda p, fr, ow: formats.write_replica(p, fr, overwrite=ow),
+             "traj_w_c.txt"),
+            ("tum", lambda p, fr, ow: formats.write_tum(p, fr, overwrite=ow), "rgb.txt")):
+        out = tmp_path / name
+        assert write(out, frames, False) == 3 and (out / is_kind).is_file()
+        before = sorted(p.relative_to(out) for p in out.rglob("*"))
+        with pytest.raises(ValueError, match="exists already; remove it, or overwrite it"):
+            write(out, frames[:1], False)
+        with pytest.raises(ValueError):
+            write(out, bad, True)
+        assert sorted(p.relative_to(out) for p in out.rglob("*")) == before, name
+        assert sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(".")) == []
+        assert write(out, frames[:2], True) == 2  # a complete one replaces it
+        fresh = tmp_path / f"new_{name}"
+        with pytest.raises(ValueError):
+            write(fresh, bad, False)
+        assert not fresh.exists()
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(ValueError, match="is not a Replica folder; not overwriting"):
+        formats.write_replica(tmp_path / "mine", frames, overwrite=True)

@@ -174,6 +174,19 @@ def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, 
     assert ("the bag has no /camera/color/image_raw but has /camera/color/image_raw/compressed"
             " (sensor_msgs/msg/Image): start the nodes with -p topics.color:=/camera/color/"
             "image_raw/compressed") in log.read_text(), log.read_text()
+    # A colour topic the bag does not have at all (a name mistyped, or made relative for a
+    # namespace): said, with the bag's image topics, not a run that labels nothing in
+    # silence.
+    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_subscribers_s:=0",
+                  "-p", "topics.color:=camera/color/image_raw"], ros_env(domain), log)
+    try:
+        assert proc.wait(timeout=120) == 0, log.read_text()
+    finally:
+        stop(proc)
+    assert ("the bag has no camera/color/image_raw (topics.color), where the nodes listen: "
+            "they get none; the bag's image topics: ['/camera/color/image_raw', "
+            "'/camera/depth/image_raw'") in log.read_text(), log.read_text()
 
 
 @pytest.mark.parametrize("node_name, sig, extra", [
@@ -408,7 +421,12 @@ def test_a_refused_stream_is_reported_as_refused_not_as_absent():
                          "color: it arrives but is refused: got 'rgba8'")
     report_starved(h, ["color"], 5.0, "images do (check the topic names")
     assert lines[-1] == "waiting for color: it arrives but is refused: got 'rgba8'"
-    assert h.problems == {"bad_color": 1, "starved": 3}
+    # The node names each stream's topic as it resolved it (one wrong name among several
+    # inputs, e.g. made relative under a namespace, shows which).
+    report_starved(h, ["embedding"], 5.0, "inputs do (check the topic names",
+                   {"embedding": "/robot1/neurncd/embedding"})
+    assert lines[-1].startswith("waiting for embedding (/robot1/neurncd/embedding): nothing")
+    assert h.problems == {"bad_color": 1, "starved": 4}
     from neurncd_ros.core.engine.health import no_camera_info
     assert no_camera_info(h) == "no camera info received yet"
     h.refuse("camera_info", "bad_camera_info", "camera_info message skipped: distortion",

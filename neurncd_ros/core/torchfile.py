@@ -58,3 +58,16 @@ def read_torch_file(path: str | Path, device: str = "cpu", what: str = "checkpoi
         detail = str(e).splitlines()[0] if str(e) else "file is empty or truncated"
         raise TorchFileError(f"cannot read {what} {path}: {type(e).__name__}: "
                              f"{detail}") from None
+
+
+def check_save_path(path: str | Path, param: str) -> None:
+    """At start, that a file to save to (``param``, e.g. mapper_node.map_path) can be one:
+    not a folder, its folder creatable. A run that learnt for minutes must not end in a
+    traceback at its first save."""
+    p = Path(path)
+    if p.is_dir():
+        raise TorchFileError(f"{param} {p} is a folder: give a file path")
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise TorchFileError(f"{param} {p}: cannot create its folder ({err})") from None

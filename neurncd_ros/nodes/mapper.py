@@ -92,6 +92,9 @@ def make_node():
             self.exit_code = 0
             self.spec: EmbeddingSpec | None = None
             path = self.node_cfg.map_path
+            if path:  # a folder given as the map: one line at start, not a failed save later
+                from ..core.torchfile import check_save_path
+                check_save_path(path, "mapper_node.map_path")
             if path and os.path.isfile(path):
                 self.stage.load(path, Mapper.load)  # a bad file: clear error, exit 2
                 self.spec = self.stage.spec
@@ -141,6 +144,8 @@ def make_node():
             self.create_service(Trigger, "~/reset", self.on_reset)
             self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth,
                                                  self.topics.embedding])
+            self.stage.stream_topics = {s: self.resolve_topic_name(getattr(self.topics, s))
+                                        for s in ("color", "depth", "embedding", "pose")}
             wall_timer(self, 1.0, self.on_tick)
             if self.node_cfg.map_path and self.node_cfg.save_period_s > 0:
                 wall_timer(self, self.node_cfg.save_period_s, self.autosave)

@@ -80,9 +80,17 @@ def make_node():
                               if topic in self.publishers_by_topic)
             self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
                                 if x in self.publishers_by_topic]
-            for role, want in (("color", t.color), ("depth", t.depth)):
+            images = sorted(x for x, (mt, _) in topics.items()
+                            if mt.startswith("sensor_msgs/msg/") and "Image" in mt)
+            for role, want in (("color", t.color), ("depth", t.depth),
+                               ("camera_info", t.camera_info)):
                 # A bag recorded through image_transport: the nodes read it once told.
-                alt = compressed_alternatives(want, topics)
+                alt = compressed_alternatives(want, topics) if role != "camera_info" else []
+                if want not in topics and not alt:
+                    # The nodes listen on topics.<role>: nothing of the bag reaches them.
+                    self.get_logger().warning(
+                        f"the bag has no {want} (topics.{role}), where the nodes listen: "
+                        f"they get none; the bag's image topics: {images}")
                 if alt:
                     self.get_logger().warning(
                         f"the bag has no {want} but has {alt[0]} ({topics[alt[0]][0]}): start "

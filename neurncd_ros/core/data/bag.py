@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import shutil
 import struct
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -159,38 +158,43 @@ def _latched_qos() -> list:
 class _BagWriter:
     """rosbags Writer with connections made on first use.
 
-    A write that fails (a frame the source cannot read, a bad message) removes
-    the bag folder it started, so a failed conversion leaves nothing behind
-    that the next attempt would refuse to overwrite."""
+    The bag is written beside its path and moved there once complete
+    (:func:`.folder_common.replacing_output`): an existing bag is refused without
+    ``overwrite`` and replaced only by a complete one, and a write that fails (a frame the
+    source cannot read, a bad message) leaves no bag and the old one as it was."""
 
     def __init__(self, path: str | Path, storage: str, overwrite: bool) -> None:
-        from rosbags.rosbag2 import Writer
         self.path = Path(path)
-        plugin = _storage_plugin(storage)
-        if self.path.exists():
-            if not overwrite:
-                raise BagError(f"{self.path}: exists already; remove it, or overwrite it "
-                               "(overwrite=True; neurncd convert --overwrite)")
-            if not (self.path / "metadata.yaml").is_file():
-                raise BagError(f"{self.path}: exists and is not a bag folder; not overwriting")
-            shutil.rmtree(self.path)
-        self.writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self.plugin = _storage_plugin(storage)
+        self.overwrite = overwrite
         self.conns: dict[str, Any] = {}
         self.count = 0
 
     def __enter__(self) -> "_BagWriter":
+        from rosbags.rosbag2 import Writer
+
+        from .folder_common import replacing_output
+
+        self._out = replacing_output(self.path, self.overwrite,
+                                     lambda p: (p / "metadata.yaml").is_file(), "bag folder",
+                                     BagError)
+        target = self._out.__enter__()
         try:
+            self.writer = Writer(target, version=9, storage_plugin=self.plugin)
             self.writer.open()
         except Exception as err:
+            self._out.__exit__(type(err), err, err.__traceback__)
             raise BagError(f"{self.path}: cannot create bag ({err})") from err
         return self
 
     def __exit__(self, *exc: Any) -> None:
         try:
             self.writer.__exit__(*exc)
-        finally:
-            if exc[0] is not None:
-                shutil.rmtree(self.path, ignore_errors=True)
+        except Exception as err:
+            if exc[0] is None:
+                self._out.__exit__(type(err), err, err.__traceback__)
+                raise
+        self._out.__exit__(*exc)
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, msg: Any) -> None:
         conn = self.conns.get(topic)

@@ -4,12 +4,15 @@ the layouts); import from there."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import os
 import re
+import shutil
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Iterator, Sequence
 
 import cv2
 import numpy as np
@@ -415,3 +418,31 @@ def detect_kind(folder: str | Path) -> str:
     raise FormatError(f"{f}: unknown layout (expected traj_w_c.txt + rgb/ (replica), "
                       "trajectory.log (redwood), pose.txt + color/ (posetxt), "
                       "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")
+
+
+@contextlib.contextmanager
+def replacing_output(path: str | Path, overwrite: bool, is_kind: Callable[[Path], bool],
+                     kind: str, error: type[Exception] = FormatError) -> Iterator[Path]:
+    """Where to write an output folder (a bag, a Replica or TUM folder) so that nothing
+    is lost: an existing ``path`` is refused without ``overwrite``, and with it replaced
+    only once the new output is complete; a write that fails leaves ``path`` as it was
+    and nothing beside it. (A failed ``convert --overwrite`` once deleted the old bag; a
+    Replica folder was silently rewritten in place.) ``is_kind`` tells an existing folder
+    of this kind (never overwritten otherwise: it may be anything of the user's)."""
+    path = Path(path)
+    if path.exists():
+        if not overwrite:
+            raise error(f"{path}: exists already; remove it, or overwrite it (--overwrite)")
+        if not path.is_dir() or not is_kind(path):
+            raise error(f"{path}: exists and is not a {kind}; not overwriting")
+    staging = path.parent / f".{path.name}.partial"
+    shutil.rmtree(staging, ignore_errors=True)  # a killed earlier write's
+    staging.mkdir(parents=True)
+    target = staging / path.name  # the final name: a bag's storage file is named after it
+    try:
+        yield target
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(target, path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)

@@ -164,6 +164,8 @@ def read_single(color: str | Path, depth: str | Path, preset: str = "tum",
 READER_OPTIONS = ("id_map, class_info, semantic_ids (Replica), labelled, class_mapping "
                   "(NYUv2 raw sequence or labelled .mat), trajectory (TUM)")
 """The options :func:`read_folder` takes beside the :class:`FolderConfig` fields."""
+READER_NAMES = frozenset({"id_map", "class_info", "semantic_ids", "labelled", "class_mapping",
+                          "trajectory"})
 
 
 def read_folder(path: str | Path, kind: str = "auto", id_map: Any = None,
@@ -301,6 +303,12 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
     writer_opts = {k: opts.pop(k) for k in ("depth_encoding", "color_encoding") if k in opts}
     if is_bag(src):
         if opts:
+            known = {f.name for f in dataclasses.fields(FolderConfig)} | READER_NAMES
+            unknown = sorted(set(opts) - known)
+            if unknown:
+                raise ConfigError(f"{', '.join(unknown)}: unknown option; the options are "
+                                  f"the convert.* parameters or a reader's own: "
+                                  f"{READER_OPTIONS}")
             raise FormatError(f"options {sorted(opts)} apply to folders, not to bag {src}")
         reader = bagio.FrameReader.from_config(
             src, topics, bag_sync(sync, tf_parent, tf_child), with_poses=not estimate)
@@ -324,9 +332,9 @@ def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str =
         n = bagio.write_bag(out, frames, storage=storage, progress=progress,
                             topics=Topics(), overwrite=overwrite, **writer_opts)
     elif to == "replica":
-        n = write_replica(out, frames)
+        n = write_replica(out, frames, overwrite=overwrite)
     else:
-        n = write_tum(out, frames)
+        n = write_tum(out, frames, overwrite=overwrite)
     if report is not None and estimate:
         report.update({"frames_in": len(results),
                        "lost": sum(r.status == "lost" for r in results),

@@ -17,7 +17,8 @@ from ..camera import Intrinsics
 from ..frame import Frame
 
 from .folder_common import (FormatError, FolderConfig, _resolve, read_rgb, read_depth,
-                            _make_frame, _subsample, read_matrix_rows, _indexed)
+                            _make_frame, _subsample, read_matrix_rows, _indexed,
+                            replacing_output)
 
 
 def _id_map_entries(id_map: Any) -> dict[int, int]:
@@ -207,14 +208,22 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         raise FormatError(f"{path}: cannot write image")
 
 
-def write_replica(folder: str | Path, frames: Iterable[Frame], hfov_deg: float = 90.0) -> int:
+def write_replica(folder: str | Path, frames: Iterable[Frame], hfov_deg: float = 90.0,
+                  overwrite: bool = False) -> int:
     """Write Frames in the Replica layout so :func:`read_replica` gives them back.
 
     Depth is stored as uint16 millimetres (exact for mm-quantised depth), labels
     as uint16 PNG. Stamps go to ``timestamps.txt``; a camera other than the
-    ``hfov_deg`` default goes to ``intrinsics.json``. Returns the frame count.
+    ``hfov_deg`` default goes to ``intrinsics.json``. An existing folder is refused
+    without ``overwrite`` and replaced only by a complete one
+    (:func:`.folder_common.replacing_output`). Returns the frame count.
     """
-    folder = Path(folder)
+    with replacing_output(folder, overwrite, lambda p: (p / "traj_w_c.txt").is_file(),
+                          "Replica folder") as target:
+        return _write_replica(target, frames, hfov_deg)
+
+
+def _write_replica(folder: Path, frames: Iterable[Frame], hfov_deg: float) -> int:
     for sub in ("rgb", "depth", "semantic_class", "semantic_instance"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     rows, stamps, cam = [], [], None

@@ -16,7 +16,7 @@ from ..frame import Frame
 from ..sync import nearest, pose_at
 from .folder_common import (IMAGE_EXTS, FormatError, FolderConfig, _resolve, camera_preset,
                             read_rgb, read_depth, _camera, _make_frame, _subsample,
-                            read_tum_trajectory, DepthScaleCheck)
+                            read_tum_trajectory, DepthScaleCheck, replacing_output)
 from .replica import _read_intrinsics_json, _write_png
 
 
@@ -134,12 +134,18 @@ def read_tum(folder: str | Path, cfg: FolderConfig = FolderConfig(),
         yield _make_frame(t, rgb, depth, pose, intr, str(rp))
 
 
-def write_tum(folder: str | Path, frames: Iterable[Frame], depth_scale: float = 5000.0
-              ) -> int:
+def write_tum(folder: str | Path, frames: Iterable[Frame], depth_scale: float = 5000.0,
+              overwrite: bool = False) -> int:
     """Write Frames as a TUM RGB-D folder (rgb/, depth/, lists, groundtruth.txt), and the
     camera as ``intrinsics.json`` (TUM folders carry none; :func:`read_tum` reads it back
-    rather than a preset's camera)."""
-    folder = Path(folder)
+    rather than a preset's camera). An existing folder is refused without ``overwrite``
+    and replaced only by a complete one (:func:`.folder_common.replacing_output`)."""
+    with replacing_output(folder, overwrite, lambda p: (p / "rgb.txt").is_file(),
+                          "TUM folder") as target:
+        return _write_tum(target, frames, depth_scale)
+
+
+def _write_tum(folder: Path, frames: Iterable[Frame], depth_scale: float) -> int:
     (folder / "rgb").mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(parents=True, exist_ok=True)
     rgb_l, dep_l, gt_l = [], [], []

@@ -118,8 +118,11 @@ def save_state(path: str | Path, state: dict[str, Any]) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    torch.save({"version": STATE_VERSION, **state}, str(tmp))
-    os.replace(tmp, path)
+    try:
+        torch.save({"version": STATE_VERSION, **state}, str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)  # nothing left beside it when the save failed
 
 
 def load_state(path: str | Path) -> dict[str, Any]:

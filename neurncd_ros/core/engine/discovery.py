@@ -112,7 +112,11 @@ class DiscoveryStage:
         self._saved_state = None
         self.continued: list[int] | None = None  # the novel ids a loaded state brought
         self._last_save = clock()
+        self.state_refused: str | None = None  # why a loaded state was not continued
         path = node_cfg.state_path
+        if path:
+            from ..torchfile import check_save_path
+            check_save_path(path, "discovery_node.state_path")
         if path and os.path.isfile(path):
             from ..discovery.state import load_state
             self._saved_state = load_state(path)
@@ -137,9 +141,17 @@ class DiscoveryStage:
                 try:
                     self.discoverer.restore(saved["discovery"])
                 except (KeyError, ValueError) as err:
-                    self.health.problem("state_not_continued", f"{self.node_cfg.state_path}:"
-                                        f" not continued ({err}); discovery starts afresh "
-                                        "and the next save replaces it", level=2)
+                    path = self.node_cfg.state_path
+                    kept = path + ".not-continued"
+                    try:  # a mistyped parameter must not cost the ids saved in it
+                        os.replace(path, kept)
+                        where = f"kept as {kept}"
+                    except OSError as move_err:
+                        where = f"could not be kept aside ({move_err})"
+                    self.state_refused = f"{err}; the file is {where}"
+                    self.health.problem("state_not_continued", f"{path}: not continued "
+                                        f"({err}); discovery starts afresh, the saved state "
+                                        f"is {where}", level=2)
                 else:
                     d = self.discoverer
                     self.continued = d.novel_ids

@@ -56,6 +56,7 @@ class EmbeddingStage:
         self.cfg = cfg
         self.spec: EmbeddingSpec = backbone.spec
         self.health = health or Health("embedding", throttle_s=cfg.log_throttle_s)
+        self.stream_topics: dict[str, str] = {}  # stream -> topic, named in the reports
         self.sync = StampSync(("depth", "color"), int(cfg.sync_tolerance_ms * 1e6),
                               cfg.sync_horizon_s, capacity=max(2, 3 * cfg.queue_size),
                               on_anomaly=sync_reporter(self.health),
@@ -84,7 +85,8 @@ class EmbeddingStage:
                 got = True
             starved = self.sync.starved()
         report_starved(self.health, starved, self.cfg.sync_tolerance_ms,
-                       "images do (check the topic names and that stamps agree")
+                       "images do (check the topic names and that stamps agree",
+                       self.stream_topics)
         return got
 
     def take(self) -> tuple[int, np.ndarray, np.ndarray] | None:

@@ -219,17 +219,20 @@ def no_camera_info(health) -> str:
             else "no camera info received yet")
 
 
-def report_starved(health, starved: list[str], tolerance_ms: float, check: str) -> None:
+def report_starved(health, starved: list[str], tolerance_ms: float, check: str,
+                   topics: dict[str, str] | None = None) -> None:
     """Report the streams a :class:`..sync.StampSync` waits for while the others arrive
-    (``StampSync.starved``), with what to ``check``; nothing if none."""
+    (``StampSync.starved``), with what to ``check``; nothing if none. ``topics``: each
+    stream's topic as the node resolved it (namespace, remaps), named beside the stream."""
     if not starved:
         return
     refused = health.refused()
-    absent = [s for s in starved if s not in refused]
+    named = {s: f"{s} ({topics[s]})" if topics and s in topics else s for s in starved}
+    absent = [named[s] for s in starved if s not in refused]
     parts = [f"waiting for {', '.join(absent)}: nothing arrives there while the other "
              f"{check} within {tolerance_ms:g} ms)"] if absent else []
     # A stream whose messages arrive and are refused never reaches the pairing, which
     # then sees nothing of it: name it as refused, with the reason.
-    parts += [f"waiting for {s}: it arrives but is refused: {refused[s]}"
+    parts += [f"waiting for {named[s]}: it arrives but is refused: {refused[s]}"
               for s in starved if s in refused]
     health.problem("starved", "; ".join(parts))

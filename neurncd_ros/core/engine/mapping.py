@@ -268,6 +268,7 @@ class MapperStage:
         self.keyframe_stamps: list[int] = []
         self._recent: collections.deque = collections.deque(maxlen=max(1, cfg.fusion_recent))
         self._fusion_inputs = FusionInputs()  # the render thread's alone
+        self.stream_topics: dict[str, str] = {}  # stream -> topic, named in the reports
         self.health.set_state("waiting", "no frame with an embedding yet")
 
     # ------------------------------------------------------------ the field
@@ -346,7 +347,7 @@ class MapperStage:
                        f"inputs do (the embedding node cannot embed the {' and '.join(refused)}"
                        " this node refuses either; check that stamps agree" if refused else
                        "inputs do (check the topic names, that the embedding node runs, "
-                       "and that stamps agree")
+                       "and that stamps agree", self.stream_topics)
         queued = []
         for stamp, g in groups:
             self.health.count("frames_paired")

@@ -290,8 +290,11 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         (out / sub).mkdir(parents=True, exist_ok=True)
         _clear_stale(out / sub)
     t_start = time.perf_counter()
-    engine = OfflineEngine(cfg)
     map_path = cfg.mapper_node.map_path
+    if map_path:  # before the run, not at its end
+        from ..torchfile import check_save_path
+        check_save_path(map_path, "mapper_node.map_path")
+    engine = OfflineEngine(cfg)
     loaded = engine.load_map(map_path) if map_path and Path(map_path).is_file() else None
     ev, ev_backbone = Evaluator(), Evaluator()
     tally = _ClassTally()
@@ -342,6 +345,7 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
     if state_path:
         result["discovery_state"] = {"path": state_path,
                                      "continued_novel_ids": engine.discovery.continued,
+                                     "refused": engine.discovery.state_refused,
                                      "saved": engine.discovery.save_state(),
                                      "novel_ids": engine.discovery.discoverer.novel_ids
                                      if engine.discovery.discoverer is not None else []}
@@ -454,9 +458,11 @@ def summary(result: dict[str, Any]) -> str:
                         else "; nothing to save (no frame was embedded)"))
     d_info = result.get("discovery_state")
     if d_info:
-        was = d_info["continued_novel_ids"]
+        was, refused = d_info["continued_novel_ids"], d_info.get("refused")
         lines.append((f"continued discovery state {d_info['path']} (novel ids {was})"
                       if was is not None else
+                      f"discovery state {d_info['path']} not continued ({refused}): started "
+                      "afresh" if refused else
                       f"no discovery state at {d_info['path']} yet: started afresh")
                      + (f"; saved it (novel ids {d_info['novel_ids']})" if d_info["saved"]
                         else "; nothing to save (no view was labelled)"))
