@@ -310,3 +310,86 @@ def test_a_bag_without_ground_truth_in_any_labelled_frame_is_an_error_naming_it(
     assert err.startswith(f"neurncd eval: error: {bag}: none of its ")
     assert "labelled frames has a ground-truth image" in err and "frame 0" not in err
     assert not (tmp_path / "o" / "eval.json").exists()
+
+
+# ------------------------------------------------- what the tables and summary say
+
+def _tables_part(text: str) -> str:
+    """The tables of tables.md (before its targets) or of a report page (after its
+    targets' list, before its figures)."""
+    if text.startswith("<!doctype"):
+        return text.split("</ul>", 1)[1].split("<h2>Discovery online")[0]
+    return text.split("### Issue 12 targets")[0]
+
+
+def test_without_ablation_there_is_no_table_3(partial_eval, tmp_path):
+    """The partial eval's rows without the ablation's (as eval without --ablation gives):
+    Tables 1-2 only, in tables.md, the report and the line eval prints, and no note on
+    rows that are not there."""
+    from neurncd_ros.core.eval import report
+
+    res = json.loads((partial_eval["out"] / "eval.json").read_text())
+    assert res["tables"] == [1, 2, 3] and "Table 3" in (partial_eval["out"] / "tables.md"
+                                                        ).read_text()
+    assert evaluate.written("X", res) == ("wrote X/eval.json, tables.md (Tables 1-3); "
+                                          "neurncd report X renders the HTML page")
+    per_bag = [{**b, "pictures": [],
+                "rows": {r: v for r, v in b["rows"].items() if r not in evaluate.ABLATION_ONLY}}
+               for b in res["bags"]]
+    out = tmp_path / "noablation"
+    got = evaluate.write_eval(out, per_bag)
+    assert set(got["aggregate"]) == {"full", "pssn"} and got["tables"] == [1, 2]
+    assert "(Tables 1-2)" in evaluate.written(out, got)
+    md = (out / "tables.md").read_text()
+    page = report.render(out).read_text()
+    for text in (md, page):
+        tables = _tables_part(text)
+        assert "Table 1" in tables and "Table 2" in tables and "Table 3" not in tables
+        assert "GS alone" not in tables and "Semantic-NeRF" not in tables
+    assert "GS alone" not in evaluate.summary(got).split("issue 12 targets")[0]
+
+
+def test_notes_describe_only_the_rows_present(partial_eval, evaluated):
+    # --ablation without --baselines: the GS note, no Semantic-NeRF note.
+    md = _tables_part((partial_eval["out"] / "tables.md").read_text())
+    assert "GS alone has no class names" in md and "Semantic-NeRF" not in md
+    # Both: both notes.
+    md = _tables_part((evaluated / "tables.md").read_text())
+    assert "GS alone has no class names" in md and "The Semantic-NeRF rows are" in md
+    # Baselines without the ablation: the Semantic-NeRF note only.
+    agg = json.loads((evaluated / "eval.json").read_text())["aggregate"]
+    md = evaluate.markdown_tables({r: a for r, a in agg.items()
+                                   if r not in evaluate.ABLATION_ONLY}, 2)
+    assert "Table 3" not in md and "GS alone" not in md and "The Semantic-NeRF rows" in md
+
+
+def test_a_missed_target_says_its_shortfall_once():
+    from neurncd_ros.core.eval import targets
+
+    agg = {"full": {k: {"mean": 50.0} for k in evaluate.FIGURES},
+           "explicit": {k: {"mean": 45.6} for k in evaluate.FIGURES},
+           "semnerf_1pct": {k: {"mean": 60.0} for k in evaluate.FIGURES}}
+    bags = [{"iterations": 10, "keyframes": 3,
+             "semnerf": {"semnerf_1pct": {"label_fit": 0.9, "labels_per_keyframe": 50}}}]
+    ex, sn = targets.check(agg, bags)[2:]
+    assert ex["met"] is False and sn["met"] is False
+    for t, short in ((ex, "5.6"), (sn, "10.0")):
+        line = targets.lines([t])[0]
+        assert f"short by {short} points. Why: " in line
+        assert short not in t["why"] and "points short" not in line, line
+
+
+def test_gs_alone_is_given_by_its_assigned_miou_only(partial_eval):
+    res = json.loads((partial_eval["out"] / "eval.json").read_text())
+    gs = res["aggregate"]["gs"]
+    assigned = evaluate._cell(gs["assigned_miou"], len(res["bags"]))
+    said = next(line for line in partial_eval["stdout"].splitlines()
+                if line.strip().startswith(evaluate.row_title("gs")))
+    assert said.split(evaluate.row_title("gs"))[1].split() == ["assigned", *assigned.split()]
+    md = (partial_eval["out"] / "tables.md").read_text()
+    row = f"| ✓ | | | | ✓ | n/a | n/a | n/a | {assigned} |"
+    assert row in md
+    assert sum(evaluate.row_title("gs") in line for line in md.splitlines()) == 0
+    assert cli.main(["report", str(partial_eval["out"])]) == 0
+    page = (partial_eval["out"] / "report.html").read_text()
+    assert f"<td>n/a</td><td>n/a</td><td>n/a</td><td>{assigned}</td>" in page

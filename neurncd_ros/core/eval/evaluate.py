@@ -1,4 +1,5 @@
-"""The rows of the paper's Tables 1-3 from one engine pass per bag (see the package doc)."""
+"""The rows of the paper's Tables 1-2 (and, with the ablation, 3) from one engine pass per
+bag (see the package doc)."""
 
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ ROWS = {
 """Fixed rows; the Semantic-NeRF rows (``semnerf_<pct>pct``, one per
 ``semnerf.label_fractions``) follow them, titled by :func:`row_title`."""
 ABLATION_ROWS = ("full", "gs_pssn_ep_mcl", "gs", "pssn")
+ABLATION_ONLY = ("gs_pssn_ep_mcl", "gs")
+"""The ablation's rows only ``--ablation`` evaluates: Table 3 is written when one is."""
 BASELINE_ROWS = ("explicit",)
 PANELS = {"rgb": "colour", "gt": "ground truth", "backbone": "backbone",
           "baseline": "explicit baseline", "ours": "ours"}
@@ -284,9 +287,35 @@ def coverage(bags: list[dict]) -> list[str]:
     return out
 
 
+def tables(agg: dict) -> list[int]:
+    """The paper's tables an evaluation of ``agg``'s rows writes: 1 and 2, and 3 (the
+    ablation) when an ablation row was evaluated (``--ablation``)."""
+    return [1, 2, 3] if any(r in agg for r in ABLATION_ONLY) else [1, 2]
+
+
+def tables_label(agg: dict) -> str:
+    """"Tables 1-3" or "Tables 1-2": what tables.md holds."""
+    t = tables(agg)
+    return f"Tables {t[0]}-{t[-1]}"
+
+
+def written(out_dir: str | Path, result: dict) -> str:
+    """The line after an eval: what it wrote, naming the tables tables.md holds."""
+    return (f"wrote {out_dir}/eval.json, tables.md ({tables_label(result['aggregate'])}); "
+            f"neurncd report {out_dir} renders the HTML page")
+
+
+def _named(row: str) -> bool:
+    """Whether a row's clusters carry class names (GS alone's do not: it is scored by
+    assigned mIoU only, its named mIoUs given nowhere)."""
+    return row != "gs"
+
+
 def markdown_tables(agg: dict, n_bags: int, notes: Iterable[str] = ()) -> str:
-    """Tables 1-3 of the paper, laid out as there (percent; mean ± std over bags);
-    ``notes`` (e.g. :func:`coverage`) are said under the first line."""
+    """Tables 1-2 of the paper, and with the ablation's rows (:data:`ABLATION_ONLY`)
+    Table 3, laid out as there (percent; mean ± std over bags); ``notes`` (e.g.
+    :func:`coverage`) are said under the first line. The notes under the tables
+    describe only rows that are present."""
     known = [int(c) for c in classes.KNOWN_IDS]
     novel = [int(c) for c in classes.NOVEL_IDS]
     names = [classes.class_name(c) for c in known + novel]
@@ -301,7 +330,7 @@ def markdown_tables(agg: dict, n_bags: int, notes: Iterable[str] = ()) -> str:
              " | ".join(f"*{n}*" for n in names[len(known):]) + " |",
              "|---" * (1 + len(names)) + "|"]
     for row in agg:
-        if row == "gs":
+        if not _named(row):  # GS alone: Table 3's assigned mIoU only
             continue
         lines.append(f"| {row_title(row)} | " + " | ".join(
             _cell(agg[row]["iou"][str(c)], n_bags) for c in known + novel) + " |")
@@ -309,28 +338,35 @@ def markdown_tables(agg: dict, n_bags: int, notes: Iterable[str] = ()) -> str:
               "| method | mIoU known | mIoU novel | mIoU all | Total Acc | Avg Acc | "
               "assigned mIoU (SCIM) |", "|---|---|---|---|---|---|---|"]
     for row in agg:
-        if row == "gs":
+        if not _named(row):  # GS alone: Table 3's assigned mIoU only
             continue
         a = agg[row]
         lines.append(f"| {row_title(row)} | " + " | ".join(_cell(a[k], n_bags)
                                                             for k in FIGURES) + " |")
-    lines += ["", "### Table 3: ablation", "",
-              "| GS | PSSN | EP | SE | MCL | mIoU known | mIoU novel | mIoU all | "
-              "assigned mIoU |", "|---|---|---|---|---|---|---|---|---|"]
-    marks = {"gs": "✓ | | | | ✓", "pssn": " | ✓ | | | ", "gs_pssn_ep_mcl": "✓ | ✓ | ✓ | | ✓",
-             "full": "✓ | ✓ | ✓ | ✓ | ✓"}
-    for row in ("gs", "pssn", "gs_pssn_ep_mcl", "full"):
-        if row in agg:
-            a = agg[row]
-            lines.append(f"| {marks[row]} | " + " | ".join(
-                _cell(a[k], n_bags) for k in ("miou_known", "miou_novel", "miou_all",
-                                              "assigned_miou")) + " |")
-    lines += ["", "GS alone has no class names: its row is scored by SCIM's assigned mIoU "
-              "(every cluster matched one-to-one to a ground-truth class); its named "
-              "mIoUs only see the novel matching. The Semantic-NeRF rows are fields "
-              "trained on ground-truth labels of the known classes at that share of each "
-              "keyframe's pixels (no backbone); they name no novel class, so their figure "
-              "is mIoU known."]
+    if 3 in tables(agg):
+        lines += ["", "### Table 3: ablation", "",
+                  "| GS | PSSN | EP | SE | MCL | mIoU known | mIoU novel | mIoU all | "
+                  "assigned mIoU |", "|---|---|---|---|---|---|---|---|---|"]
+        marks = {"gs": "✓ | | | | ✓", "pssn": " | ✓ | | | ",
+                 "gs_pssn_ep_mcl": "✓ | ✓ | ✓ | | ✓", "full": "✓ | ✓ | ✓ | ✓ | ✓"}
+        for row in ("gs", "pssn", "gs_pssn_ep_mcl", "full"):
+            if row in agg:
+                a = agg[row]
+                lines.append(f"| {marks[row]} | " + " | ".join(
+                    _cell(a[k], n_bags) if _named(row) or k == "assigned_miou" else "n/a"
+                    for k in ("miou_known", "miou_novel", "miou_all", "assigned_miou"))
+                    + " |")
+    said = []
+    if "gs" in agg:
+        said.append("GS alone has no class names: its row is scored by SCIM's assigned "
+                    "mIoU only (every cluster matched one-to-one to a ground-truth class); "
+                    "its named mIoUs (n/a) would only see the novel matching.")
+    if any(r.startswith(semnerf.ROW_PREFIX) for r in agg):
+        said.append("The Semantic-NeRF rows are fields trained on ground-truth labels of "
+                    "the known classes at that share of each keyframe's pixels (no "
+                    "backbone); they name no novel class, so their figure is mIoU known.")
+    if said:
+        lines += ["", " ".join(said)]
     return "\n".join(lines) + "\n"
 
 
@@ -345,6 +381,9 @@ def picture_panels(per_bag: list[dict]) -> list[dict[str, str]]:
 def write_eval(out_dir: str | Path, per_bag: list[dict]) -> dict[str, Any]:
     """DIR/eval.json, DIR/tables.md, DIR/pictures.npz (for ``neurncd report``).
 
+    eval.json ``tables`` lists the paper's tables tables.md holds (:func:`tables`: 1-2,
+    and 3 with the ablation's rows).
+
     eval.json ``picture_panels`` names the panels of pictures.npz's grid rows, so the
     report's heading says what the images hold (no baseline panel without
     ``--baselines``)."""
@@ -355,7 +394,7 @@ def write_eval(out_dir: str | Path, per_bag: list[dict]) -> dict[str, Any]:
     checked = targets.check(agg, bags)
     panels = picture_panels(per_bag)
     result = {"bags": bags, "aggregate": agg, "rows": {r: row_title(r) for r in agg},
-              "targets": checked, "picture_panels": panels}
+              "tables": tables(agg), "targets": checked, "picture_panels": panels}
     (out / "eval.json").write_text(json.dumps(result, indent=1, default=json_default))
     (out / "tables.md").write_text(markdown_tables(agg, len(per_bag), coverage(bags))
                                    + "\n" + targets.markdown(checked))
@@ -379,6 +418,9 @@ def summary(result: dict) -> str:
                 else "")]
     lines += [f"  {x}" for x in coverage(bags)]
     for row, a in agg.items():
+        if not _named(row):  # GS alone: scored by assigned mIoU only
+            lines.append(f"  {row_title(row):52s} assigned {_cell(a['assigned_miou'], n)}")
+            continue
         lines.append(f"  {row_title(row):52s} known {_cell(a['miou_known'], n)}, novel "
                      f"{_cell(a['miou_novel'], n)}, all {_cell(a['miou_all'], n)}, assigned "
                      f"{_cell(a['assigned_miou'], n)}")
