@@ -199,8 +199,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
                for b in args.bag]
     result = evaluate.write_eval(args.out, per_bag)
     print(evaluate.summary(result))
-    print(f"wrote {args.out}/eval.json, tables.md (Tables 1-3); neurncd report {args.out} "
-          "renders the HTML page")
+    print(evaluate.written(args.out, result))
     return 0
 
 
@@ -370,7 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("eval", help="the paper's Tables 1-3 on bags with ground truth "
+    p = sub.add_parser("eval", help="the paper's Tables 1-2 (3 with --ablation) on bags with "
+                       "ground truth "
                        "(runs the engine offline once per bag)")
     p.add_argument("--bag", action="append", required=True,
                    help="bag with /camera/semantic/image_raw (repeat for several); "
