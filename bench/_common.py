@@ -8,6 +8,12 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
+def results_dir(quick: bool) -> Path:
+    """Where a benchmark writes: bench/results, or bench/results/quick for a ``--quick``
+    smoke run (it must never replace the full results the README quotes)."""
+    return REPO / "bench" / "results" / ("quick" if quick else "")
+
+
 def commit() -> str:
     """Short hash of HEAD, or 'uncommitted' when there is none."""
     try:

@@ -57,7 +57,7 @@ RESULTS = REPO / "bench" / "results"
 VAL_SEEDS = seeds.BACKBONE_VAL
 
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, results_dir  # noqa: E402  (bench/ is on sys.path)
 
 
 def median_ms(fn, runs: int, warmup: int = 3) -> float:
@@ -266,11 +266,14 @@ def save_png(shown: list, path: Path) -> None:
 
 
 def main() -> int:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="few runs and frames (smoke test)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-esanet", action="store_true", help="skip the ESANet timings")
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(args.threads)
     runs = 20 if args.quick else 50
     backbone = bb.load_backbone(bb.BackboneConfig(num_threads=args.threads))

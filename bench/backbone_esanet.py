@@ -74,7 +74,8 @@ def main(argv: list[str] | None = None) -> dict:
     repeats = 2 if args.quick else args.repeats
     res = measure_esanet(SIZES, repeats)
     res.update({"esanet_repeats": repeats, "cores": os.cpu_count(), "commit": _commit()})
-    dest = REPO / "bench" / "results" / "backbone_esanet.json"
+    # A --quick smoke run never replaces the full results (as bench/_common.results_dir).
+    dest = REPO / "bench" / "results" / ("quick" if args.quick else "") / "backbone_esanet.json"
     dest.parent.mkdir(parents=True, exist_ok=True)
     dest.write_text(json.dumps(res, indent=2) + "\n")
     print(f"{'figure':<24}{'value':>12}")

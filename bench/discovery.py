@@ -62,7 +62,7 @@ GEOSEG_SEEDS = seeds.TEST[:5]
 TUNE_SEEDS = seeds.TUNE[:4]
 
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, results_dir  # noqa: E402  (bench/ is on sys.path)
 
 
 def frames_of(seed: int, frames: int, step: int) -> list:
@@ -213,6 +213,7 @@ def bench_tuning(embed, frames: int, step: int) -> tuple[dict, list[dict]]:
 
 
 def main() -> None:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small smoke run")
     ap.add_argument("--only", choices=("seg",), default=None,
@@ -220,6 +221,8 @@ def main() -> None:
                     "existing discovery.json)")
     ap.add_argument("--mcl-child", type=int, default=0, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     if args.mcl_child:
         mcl_child(args.mcl_child)
         return

@@ -45,7 +45,7 @@ from neurncd_ros.core.backbone.backbone import load_backbone  # noqa: E402
 from neurncd_ros.core.eval import evaluate, report, targets  # noqa: E402
 from neurncd_ros.synth import seeds  # noqa: E402
 
-from _common import commit  # noqa: E402
+from _common import commit, results_dir  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 
@@ -92,6 +92,7 @@ def _scene(job: tuple) -> dict:
 
 
 def main() -> None:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--scenes", type=int, default=8)
@@ -104,6 +105,8 @@ def main() -> None:
     ap.add_argument("--name", default="eval",
                     help="results name: bench/results/NAME.json, NAME/ and NAME.html")
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     if args.set and args.name == "eval":
         raise SystemExit("--set changes the configuration: give the run its own --name "
                          "(eval.json holds the default configuration)")

@@ -73,7 +73,7 @@ FAST_CHECKPOINTS = [2, 4, 6, 8, 10, 15, 20, 30, 40, 60, 90, 120]
 REFERENCE_CHECKPOINTS = [60, 120, 300, 600]
 
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, results_dir  # noqa: E402  (bench/ is on sys.path)
 
 
 def gt_embedding(semantic: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -261,6 +261,7 @@ def plot(curves: dict[str, list[dict]], path: Path, backbone_acc: float | None =
 
 
 def main() -> None:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="short smoke run for a shared machine")
     ap.add_argument("--embedding", choices=("auto", "backbone", "gt"), default="auto")
@@ -279,6 +280,8 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="change a mapper parameter (repeatable; give the run its own --name)")
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     if args.set and args.name is None:
         raise SystemExit("--set changes the configuration: give the run its own --name")
     run_cfg = config.load(None, config.parse_overrides(args.set))

@@ -116,7 +116,7 @@ from neurncd_ros.core.discovery.labeller import Discoverer  # noqa: E402
 from neurncd_ros.core.discovery.metrics import Evaluator, IdStability  # noqa: E402
 from neurncd_ros.core.params import to_dict  # noqa: E402
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, results_dir  # noqa: E402  (bench/ is on sys.path)
 
 RESULTS = REPO / "bench" / "results"
 CACHE = Path(os.environ.get("NEURNCD_NCD_CACHE", "/tmp/neurncd_ncd_cache"))
@@ -542,6 +542,7 @@ def picture(rows: list, path: Path) -> None:
 
 
 def main() -> None:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 + 2 short scenes (smoke)")
     ap.add_argument("--tune", action="store_true", help="coordinate search on seeds.TUNE first")
@@ -562,6 +563,8 @@ def main() -> None:
                     help="only score one discovery parameter over these values on the tuning "
                          "scenes (bench/results/ncd_sweep_<section>_<key>[_<set>].json), then stop")
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     frames = 45 if args.quick else args.frames

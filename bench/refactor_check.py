@@ -108,7 +108,11 @@ def run_side(commit: str, sets: list[str], work: Path, benches: list[str], bar: 
             if rc != 0:
                 raise RuntimeError(f"bench/{bench}.py at {commit} failed (exit {rc}); "
                                    f"end of its log:\n{log.read_text()[-2000:]}")
-            shutil.copy(tree / "bench" / "results" / f"{bench}.json", out / f"{bench}.json")
+            # Quick runs write to bench/results/quick/ (older commits: to bench/results/).
+            made = tree / "bench" / "results" / "quick" / f"{bench}.json"
+            if not made.is_file():
+                made = tree / "bench" / "results" / f"{bench}.json"
+            shutil.copy(made, out / f"{bench}.json")
             commands.append(f"{' '.join(argv)} (worktree at {commit})")
             bar.update()
     finally:

@@ -30,7 +30,7 @@ from neurncd_ros.synth.generator import SynthConfig, frames_at, generate  # noqa
 RESULTS = REPO / "bench" / "results"
 
 
-from _common import commit  # noqa: E402  (bench/ is on sys.path)
+from _common import commit, results_dir  # noqa: E402  (bench/ is on sys.path)
 
 
 def time_generation(frames: int, runs: int, seed: int = 0) -> dict:
@@ -98,9 +98,12 @@ def contact_sheet(path: Path, seeds=(0, 3, 7, 12), frames=(0, 150)) -> None:
 
 
 def main() -> None:
+    global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smoke run with fewer frames")
     args = ap.parse_args()
+    RESULTS = results_dir(args.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     frames, runs = (60, 1) if args.quick else (300, 3)
     seeds, per_seed = (5, 5) if args.quick else (20, 20)

@@ -238,19 +238,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    if not (REPO / "bench").is_dir():
+        print(f"neurncd bench: error: no bench/ beside the package ({REPO}): the benchmarks "
+              "live in the source tree; run them from a clone", file=sys.stderr)
+        return 2
     scripts = sorted((REPO / "bench").glob("*.py"))
+    known = [s.stem for s in scripts if not s.name.startswith("_")]
     scripts = [s for s in scripts if not s.name.startswith("_") and
                (not args.names or s.stem in args.names)]
     if not scripts:
-        print("no benchmark matched", file=sys.stderr)
+        print(f"neurncd bench: error: no benchmark matched {args.names}; there are "
+              f"{', '.join(known)}", file=sys.stderr)
         return 2
+    extra = ["--quick"] if args.quick else []
     failed = []
     for s in scripts:
         print(f"== bench/{s.name}", flush=True)
-        if subprocess.call([sys.executable, str(s)], cwd=REPO) != 0:
+        if subprocess.call([sys.executable, str(s), *extra], cwd=REPO) != 0:
             failed.append(s.name)
     print(f"benchmarks: {len(scripts) - len(failed)} ran, {len(failed)} failed "
-          f"{failed if failed else ''}; results in bench/results/")
+          f"{failed if failed else ''}; results in bench/results/{'quick/' if extra else ''}")
     return 1 if failed else 0
 
 
@@ -398,7 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="run benchmarks (bench/*.py); each writes "
                        "bench/results/<name>.json")
-    p.add_argument("names", nargs="*", help="benchmark names (default: all)")
+    p.add_argument("names", nargs="*", help="benchmark names (default: all; hours on 2 cores)")
+    p.add_argument("--quick", action="store_true", help="each benchmark's smoke run, written "
+                   "to bench/results/quick/ (a script without --quick refuses it)")
     p.set_defaults(func=cmd_bench)
     for sp in sub.choices.values():  # an unknown option is named with its command's usage
         sp.set_defaults(command_parser=sp)

@@ -549,8 +549,8 @@ def test_record_command_reproduces_the_options():
     def norm(ns):
         return {k: list(v) if isinstance(v, tuple) else v for k, v in vars(ns).items()}
     for extra in ([], ["--novelty-branch", "--outlier-weight", "0.2"]):
-        args = p.parse_args(["--train-seeds", "0-3,7", "--epochs", "2", "--widths", "8", "8",
-                             "16", "16", *extra])
+        args = p.parse_args(["--out", "w.pt", "--train-seeds", "0-3,7", "--epochs", "2",
+                             "--widths", "8", "8", "16", "16", *extra])
         line = train_backbone.command_line(args)
         assert line.startswith("neurncd train-backbone ")
         assert ("--novelty-branch" in line) == bool(extra)
@@ -600,7 +600,17 @@ def test_train_backbone_on_user_bags_with_a_validation_split(tmp_path, capsys):
     assert rec["train_files"] == [str(p) for p in paths] and rec["train_frames"] == 10
     assert rec["val_frames"] == 2 and rec["train_size"] == [64, 48]
     assert "--data" in rec["command"] and "--train-seeds" not in rec["command"]
-    assert "validation 2 frames of" in capsys.readouterr().out
+    # The record's command is one to run again (the CLI's own parser object once leaked
+    # into it as --command-parser ArgumentParser(...)).
+    assert "parser" not in rec["command"] and "--overwrite" not in rec["command"]
+    printed = capsys.readouterr().out
+    assert "validation 2 frames of" in printed
+    assert f"wrote {out} and its record {out.with_suffix('.json')}" in printed
+    # An existing weight file (the shipped weights were once the default --out) is
+    # replaced only with --overwrite.
+    assert cli.main(common + ["--data", *map(str, paths)]) == 1
+    assert "exists already; name another --out, or pass --overwrite" in capsys.readouterr().err
+    common = common + ["--overwrite"]
     b = bb.load_backbone(bb.BackboneConfig(checkpoint=str(out), num_threads=1))
     frame = next(iter(synth.generate(5, 1, cfg)))
     assert b.predict(frame.rgb, frame.depth).shape == (48, 64, 9)

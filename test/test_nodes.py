@@ -492,9 +492,9 @@ def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_n
     assert int(diag[node_name]["problem.bad_color"]) > 0, diag[node_name]
     assert "problem.bad_colour" not in diag[node_name]
     if node_name == "mapper":  # an input that is really absent is still named so, with why
-        assert "waiting for embedding: nothing arrives there while the other inputs do (the " \
-               "embedding node cannot embed the color this node refuses either" in text, \
-               text[-3000:]
+        assert "waiting for embedding (/neurncd/embedding): nothing arrives there while the " \
+               "other inputs do (the embedding node cannot embed the color this node refuses " \
+               "either" in text, text[-3000:]
     assert code == 0, text[-2000:]
 
 

@@ -450,6 +450,9 @@ def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_pa
     r = neurncd("convert", folder, "--out", tmp_path / "k.mcap", "--opt", "idmap=m.json")
     assert r.returncode == 2 and "idmap: unknown parameter" in r.stderr
     assert "id_map, class_info" in r.stderr
+    r = neurncd("bench", "nosuch", "--quick")
+    assert r.returncode == 2 and "no benchmark matched ['nosuch']; there are" in r.stderr
+    assert "ncd" in r.stderr.split("there are", 1)[1]
     r = neurncd("synth", "--seed", 1, "--frames", 0, "--out", tmp_path / "s.mcap")
     assert r.returncode == 2 and "--frames: must be at least 1" in r.stderr
     assert not (tmp_path / "s.mcap").exists()

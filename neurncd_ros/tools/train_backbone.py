@@ -59,10 +59,12 @@ def seed_text(values: Sequence[int]) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``neurncd train-backbone``."""
-    from ..core.backbone.backbone import DEFAULT_WEIGHTS
-
-    parser.add_argument("--out", default=str(DEFAULT_WEIGHTS),
-                        help="weight file to write (record json goes next to it)")
+    parser.add_argument("--out", required=True,
+                        help="weight file to write (its record, .json, goes next to it); "
+                        "the shipped weights (neurncd_ros/models/default_backbone.pt) are "
+                        "replaced only when named here and with --overwrite")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing weight file")
     parser.add_argument("--train-seeds", type=_seed_list,
                         default=list(seeds.BACKBONE_TRAIN),
                         help="synthetic scene seeds to train on (default "
@@ -143,7 +145,8 @@ def command_line(args: argparse.Namespace) -> str:
     else:
         unused = unused + ("widths",)   # ESANet's widths are fixed
     for key, value in sorted(vars(args).items()):
-        if key in ("func", "command", "config", "set") or key in unused or value is None:
+        if (key in ("func", "command", "command_parser", "config", "set", "overwrite")
+                or key in unused or value is None):
             continue
         flag = "--" + key.replace("_", "-")
         if isinstance(value, bool):  # a switch: present or not
@@ -247,6 +250,10 @@ def main(args: argparse.Namespace) -> int:
     """Load the data the options name, train, print the summary."""
     import torch
 
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:  # before minutes of loading and training
+        raise ValueError(f"{out} exists already; name another --out, or pass --overwrite "
+                         "to replace it")
     if args.threads > 0:  # this process's choice, not the core's
         torch.set_num_threads(args.threads)
     t0 = time.time()
@@ -260,6 +267,7 @@ def main(args: argparse.Namespace) -> int:
                          esanet_dataset=args.esanet_dataset,
                          outlier_weight=args.outlier_weight, outlier_prob=args.outlier_prob,
                          novelty_branch=args.novelty_branch)
+    print(f"wrote {out} and its record {out.with_suffix('.json')}")
     return 0
 
 

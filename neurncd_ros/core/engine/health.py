@@ -233,6 +233,6 @@ def report_starved(health, starved: list[str], tolerance_ms: float, check: str,
              f"{check} within {tolerance_ms:g} ms)"] if absent else []
     # A stream whose messages arrive and are refused never reaches the pairing, which
     # then sees nothing of it: name it as refused, with the reason.
-    parts += [f"waiting for {named[s]}: it arrives but is refused: {refused[s]}"
+    parts += [f"waiting for {s}: it arrives but is refused: {refused[s]}"  # names its topic
               for s in starved if s in refused]
     health.problem("starved", "; ".join(parts))
