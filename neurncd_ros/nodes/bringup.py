@@ -65,9 +65,12 @@ def build_commands(params_file: str, bag: str | None, ros_args: list[str]
                    ) -> dict[str, list[str]]:
     """One command per node: ``python -m neurncd_ros.nodes.<node> --ros-args ...``."""
     base = ["--ros-args", "--params-file", params_file, *ros_args]
-    cmds = {n: [sys.executable, "-m", f"neurncd_ros.nodes.{n}", *base] for n in NODES}
+    # -P: the package bringup itself runs from, not a source tree in the current folder
+    # (python -m puts the current folder first on sys.path).
+    py = [sys.executable, "-P", "-m"]
+    cmds = {n: [*py, f"neurncd_ros.nodes.{n}", *base] for n in NODES}
     if bag:
-        cmds["replay"] = [sys.executable, "-m", "neurncd_ros.nodes.replay", *base,
+        cmds["replay"] = [*py, "neurncd_ros.nodes.replay", *base,
                           "-p", f"replay.bag:={bag}"]
         if uses_sim_time(ros_args):  # the nodes' clocks follow the bag, as with --clock
             cmds["replay"] += ["-p", "replay.clock:=true"]
