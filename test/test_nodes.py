@@ -164,29 +164,31 @@ def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, 
              for t, typ, s, raw in bag.iter_raw(small_bag)]
     path = tmp_path / "compressed.mcap"
     bag.write_messages(path, items)
-    log = tmp_path / "replay.log"
-    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p", f"replay.bag:={path}",
-                  "-p", "replay.wait_for_subscribers_s:=0"], ros_env(domain), log)
-    try:
-        assert proc.wait(timeout=120) == 0, log.read_text()
-    finally:
-        stop(proc)
+
+    def replay_log(bag_path, *params: str) -> str:
+        """The log of the replay node playing ``bag_path`` to its end."""
+        log = tmp_path / f"replay{len(list(tmp_path.glob('replay*.log')))}.log"
+        args = [x for p in (f"replay.bag:={bag_path}", "replay.wait_for_subscribers_s:=0",
+                            *params) for x in ("-p", p)]
+        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", *args],
+                     ros_env(domain), log)
+        try:
+            assert proc.wait(timeout=120) == 0, log.read_text()
+        finally:
+            stop(proc)
+        return log.read_text()
+
+    text = replay_log(path)
     assert ("the bag has no /camera/color/image_raw but has /camera/color/image_raw/compressed"
             " (sensor_msgs/msg/Image): start the nodes with -p topics.color:=/camera/color/"
-            "image_raw/compressed") in log.read_text(), log.read_text()
+            "image_raw/compressed") in text, text
     # A colour topic the bag does not have at all (a name mistyped, or made relative for a
     # namespace): said, with the bag's image topics, not a run that labels nothing in
     # silence.
-    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_subscribers_s:=0",
-                  "-p", "topics.color:=camera/color/image_raw"], ros_env(domain), log)
-    try:
-        assert proc.wait(timeout=120) == 0, log.read_text()
-    finally:
-        stop(proc)
+    text = replay_log(small_bag, "topics.color:=camera/color/image_raw")
     assert ("the bag has no camera/color/image_raw (topics.color), where the nodes listen: "
             "they get none; the bag's image topics: ['/camera/color/image_raw', "
-            "'/camera/depth/image_raw'") in log.read_text(), log.read_text()
+            "'/camera/depth/image_raw'") in text, text
 
 
 @pytest.mark.parametrize("node_name, sig, extra", [

@@ -42,6 +42,14 @@ def _wait_gone(domain: int, timeout: float) -> list[int]:
     return node_processes(domain)
 
 
+def _shut_down(rclpy, proc) -> None:
+    """The test's ROS context, then bringup if it is still running (a failed wait)."""
+    rclpy.shutdown()
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+
+
 def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
     """Started in the background as a script would (SIGINT ignored), bringup replays the
     bag, the nodes label every keyframe, the map can be saved on request, and once the
@@ -85,10 +93,7 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
         assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()[-3000:]
         node.destroy_node()
     finally:
-        rclpy.shutdown()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _shut_down(rclpy, proc)
     text = log.read_text()
     assert proc.returncode == 0, text[-3000:]
     assert "the nodes have labelled what they received" in text, text[-3000:]
@@ -159,10 +164,7 @@ def test_bringup_under_a_namespace_with_sim_time(scene_bag, tmp_path):
         assert spin_until(node, lambda: proc.poll() is not None, 200), log.read_text()[-3000:]
         node.destroy_node()
     finally:
-        rclpy.shutdown()
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+        _shut_down(rclpy, proc)
     text = log.read_text()
     assert proc.returncode == 0 and "the nodes have labelled what they received" in text, \
         text[-3000:]
