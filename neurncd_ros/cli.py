@@ -58,7 +58,13 @@ def cmd_params(args: argparse.Namespace) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    cfg = config_mod.load(args.file)
+    found = config_mod.problems(args.file)
+    if len(found) > 1:  # every one, so that one run shows what to fix
+        for text in found:
+            print(f"neurncd check-config: configuration error: {text}", file=sys.stderr)
+        print(f"{args.file}: {len(found)} errors", file=sys.stderr)
+        return 2
+    cfg = config_mod.load(args.file)  # one error (or one that ties parameters): as named
     n = len(cfg.to_flat())
     print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections)")
     return 0

@@ -419,6 +419,34 @@ def read_config_text(path: Path) -> str:
                           ) from None
 
 
+def problems(path: str | Path) -> list[str]:
+    """Every error of a parameter file, not only the first that :func:`load` stops at
+    (``neurncd check-config``): each top-level section, then each parameter, checked on
+    its own against the defaults; a file YAML or the ROS form refuses is its one error.
+    Checks that tie two parameters together are :func:`load`'s (run it as well)."""
+    path = Path(path)
+    try:
+        nested = parameters_from_yaml(read_config_text(path), str(path))
+    except ConfigError as err:
+        return [str(err)]
+    if not isinstance(nested, dict):
+        return [f"{path}: parameters must be a mapping of sections"]
+    out = []
+    for name, section in nested.items():
+        try:
+            by_section = _by_section({name: section})
+        except ConfigError as err:
+            out.append(f"{path}: {err}")
+            continue
+        for sec, values in by_section.items():
+            for key, value in values.items():
+                try:
+                    _build({sec: {key: value}})
+                except ConfigError as err:
+                    out.append(f"{path}: {err}")
+    return out
+
+
 def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
     """Read and validate a parameter file (default: the shipped config/neurncd.yaml).
 

@@ -461,3 +461,21 @@ def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_pa
     r = neurncd("convert", folder, "--out", tmp_path / "k.mcap")
     assert r.returncode == 1
     assert r.stderr.startswith("neurncd convert: error:") and "exists already" in r.stderr
+
+
+def test_check_config_names_every_error_of_a_file(tmp_path):
+    """One run shows everything to fix: a choice not allowed, a wrong type, a value out of
+    range and an unknown section, each named with its file (it stopped at the first)."""
+    bad = tmp_path / "multi.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    mapper_node:\n      fusion: bogus\n"
+                   "      coverage_depth_tolerance: abc\n      own_view_weight: 1000.0\n"
+                   "    bogus_section:\n      x: 1\n")
+    r = neurncd("check-config", bad, timeout=120)
+    assert r.returncode == 2 and f"{bad}: 4 errors" in r.stderr, r.stderr
+    for what in ("mapper_node.fusion: 'bogus' is not allowed",
+                 "mapper_node.coverage_depth_tolerance: 'abc' has type str",
+                 "mapper_node.own_view_weight: 1000.0 is out of range",
+                 "bogus_section: unknown section"):
+        assert f"configuration error: {bad}: {what}" in r.stderr, r.stderr
+    good = neurncd("check-config", REPO / "config" / "neurncd.yaml", timeout=120)
+    assert good.returncode == 0 and "valid (" in good.stdout
