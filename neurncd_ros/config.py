@@ -19,6 +19,11 @@ so the same file is given to every node (``--ros-args --params-file``) and to
 the offline tool (``neurncd run --config``). In ROS the nested keys become
 dotted parameter names (``backbone.kind``, ``mapper.fast.hidden``); a
 section's dotted name (``mapper.fast``) is what :meth:`Config.section` takes.
+
+It stays one module (over 500 lines): reading a parameter file in the ROS form, its
+dotted keys, the sections' validation, overrides and the report of every error
+(:func:`problems`) share one parse of the file, and the schema is meant to be in one
+place.
 """
 
 from __future__ import annotations
