@@ -10,9 +10,11 @@ traceback.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import pickle
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 import torch
@@ -71,3 +73,18 @@ def check_save_path(path: str | Path, param: str) -> None:
         p.parent.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise TorchFileError(f"{param} {p}: cannot create its folder ({err})") from None
+
+
+@contextlib.contextmanager
+def written_atomically(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write to; moved onto ``path`` once the block
+    ends without error, removed otherwise: a process killed or failing mid-save leaves
+    the previous file and nothing beside it (the map and the discovery state)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)

@@ -14,7 +14,6 @@ meanings of ids.
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 from typing import Any
 
@@ -115,14 +114,10 @@ def restore_fusion(fusion: Any, state: dict[str, Any]) -> None:
 
 def save_state(path: str | Path, state: dict[str, Any]) -> None:
     """Write atomically: a node killed mid-save leaves the previous file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    try:
+    from ..torchfile import written_atomically
+
+    with written_atomically(path) as tmp:
         torch.save({"version": STATE_VERSION, **state}, str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)  # nothing left beside it when the save failed
 
 
 def load_state(path: str | Path) -> dict[str, Any]:

@@ -60,7 +60,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import json
-import os
 import threading
 import time
 from pathlib import Path
@@ -315,14 +314,14 @@ class MapperStage:
         there is nothing to save yet."""
         if self.mapper is None or self.spec is None:
             return False
+        from ..torchfile import written_atomically
+
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        self.mapper.save(tmp)
-        spec_tmp = path.with_name(path.name + ".spec.json.tmp")
-        spec_tmp.write_text(self.spec.to_json())
-        os.replace(spec_tmp, path.with_name(path.name + ".spec.json"))
-        os.replace(tmp, path)
+        # The map first to its temporary file, then the spec, then the map in place.
+        with written_atomically(path) as tmp:
+            self.mapper.save(tmp)
+            with written_atomically(path.with_name(path.name + ".spec.json")) as spec_tmp:
+                spec_tmp.write_text(self.spec.to_json())
         self.health.count("map_saves")
         return True
 
