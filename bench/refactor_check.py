@@ -199,4 +199,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from neurncd_ros.core.text import progress_as_lines
+
+    with progress_as_lines():  # a log file gets the bars as lines
+        sys.exit(main())

@@ -126,4 +126,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from neurncd_ros.core.text import progress_as_lines
+
+    with progress_as_lines():  # a log file gets the bars as lines
+        main()

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from . import config as config_mod
 from .core.params import ConfigError
-from .core.text import plural
+from .core.text import plural, progress_as_lines
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -80,6 +80,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
                                    **({"height": args.height} if args.height else {})},
                  prefix="synth.")
     out = Path(args.out)
+    fmt = args.format
+    if fmt != "replica":
+        from .core.data.bag import storage_for
+        fmt = storage_for(out, fmt)  # a suffix naming the other storage is refused here
     if out.exists() and not args.overwrite:  # before the progress bar starts
         print(f"neurncd synth: error: {out}: exists already; remove it, or overwrite it "
               "(--overwrite)", file=sys.stderr)
@@ -87,15 +91,14 @@ def cmd_synth(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     frames = synth.generate(args.seed, args.frames, scfg)
     frames = _progress(frames, args.frames, f"synth seed {args.seed}")
-    if args.format == "replica":
+    if fmt == "replica":
         from .core.data.formats import write_replica
         n = write_replica(out, frames, overwrite=args.overwrite)
     else:
         from .core.data.bag import write_bag
-        n = write_bag(out, frames, storage=args.format, topics=cfg.topics,
-                      overwrite=args.overwrite)
+        n = write_bag(out, frames, storage=fmt, topics=cfg.topics, overwrite=args.overwrite)
     print(f"wrote {plural(n, 'frame')} of seed {args.seed} ({scfg.width}x{scfg.height}, "
-          f"depth noise {scfg.depth_noise}) to {out} as {args.format} in "
+          f"depth noise {scfg.depth_noise}) to {out} as {fmt} in "
           f"{time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -315,7 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, required=True)
     p.add_argument("--frames", type=_positive_int, default=300)
     p.add_argument("--out", required=True, help="bag path (mcap/sqlite3) or Replica folder")
-    p.add_argument("--format", choices=("mcap", "sqlite3", "replica"), default="mcap")
+    p.add_argument("--format", choices=("mcap", "sqlite3", "replica"), default=None,
+                   help="default: sqlite3 for an --out ending in .db3, else mcap")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an existing output (only once the new one is complete)")
     p.add_argument("--width", type=int, default=None)
@@ -338,7 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--kind", default="auto",
                    help="auto, replica, tum, nyu (NYUv2 raw scene folder), posetxt, redwood, "
                    "or bag")
-    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default=None,
+                   help="bag storage; default: sqlite3 for an --out ending in .db3, else mcap")
     p.add_argument("--to", choices=("bag", "replica", "tum"), default="bag",
                    help="output: a bag (default), a Replica-layout folder or a TUM folder")
     p.add_argument("--poses", choices=("source", "odometry"), default="source",
@@ -427,7 +432,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         args.command_parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     _log_above_progress_bars()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), progress_as_lines():
         # The engine's advice (a threshold tuned for another backbone, a suspicious depth
         # scale) as a plain line, not Python's warning with its file and source line.
         warnings.showwarning = lambda message, *_a, **_k: print(

@@ -329,6 +329,24 @@ def test_writer_rejects_bad_arguments(tmp_path):
         FrameReader(tmp_path / "c", tf_parent="world")
 
 
+def test_storage_follows_the_suffix(tmp_path):
+    """``--out scene.db3`` without a storage made an mcap file in a folder called .db3: the
+    suffix now chooses, and a storage that contradicts it is refused."""
+    frames = make_frames(1)
+    bag.write_bag(tmp_path / "s.db3", frames)
+    bag.write_bag(tmp_path / "m.mcap", frames)
+    bag.write_bag(tmp_path / "plain", frames, storage="sqlite3")
+    assert [p.suffix for p in (tmp_path / "s.db3").iterdir() if p.name != "metadata.yaml"] \
+        == [".db3"]
+    assert [p.suffix for p in (tmp_path / "m.mcap").iterdir() if p.name != "metadata.yaml"] \
+        == [".mcap"]
+    assert len(list(FrameReader(tmp_path / "s.db3"))) == 1
+    assert (tmp_path / "plain" / "plain.db3").is_file()
+    with pytest.raises(BagError, match=r"suffix \.db3 says sqlite3.*name it x\.mcap"):
+        bag.write_bag(tmp_path / "x.db3", frames, storage="mcap")
+    assert not (tmp_path / "x.db3").exists()
+
+
 @pytest.mark.slow
 def test_write_and_read_300_frames(tmp_path):
     """A full-size sequence round-trips through both storages (its speed is

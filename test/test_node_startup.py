@@ -227,6 +227,31 @@ def test_bringup_reports_a_bad_parameter_file_on_one_line(text, expect, tmp_path
     assert not node_processes(rosutil.domain(15))
 
 
+@pytest.mark.parametrize("ros_args, expect", [
+    (["-p", "discovery.mcl_inflation:=abc"], "discovery.mcl_inflation"),
+    (["-p", "mapper.no_such_key:=1"], "mapper.no_such_key"),
+    (["--params-file", "EXTRA"], "keyframes.min_rotation"),
+])
+def test_bringup_refuses_a_bad_value_once_before_starting_nodes(ros_args, expect, tmp_path):
+    """A bad `-p` value (or one in a further --params-file) was refused by each node on its
+    own: three identical errors and a supervisor that had started them all. Bringup checks
+    the configuration its nodes would read and refuses it once, naming where it was given."""
+    extra = tmp_path / "extra.yaml"
+    extra.write_text("/**:\n  ros__parameters:\n    keyframes:\n      min_rotation: -5.0\n")
+    ros_args = [str(extra) if a == "EXTRA" else a for a in ros_args]
+    domain = rosutil.domain(15)
+    r = subprocess.run([sys.executable, "-m", "neurncd_ros.nodes.bringup", "--ros-args",
+                        *ros_args], env=ros_env(domain), capture_output=True, text=True,
+                       timeout=60, cwd=REPO)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, r.stderr
+    assert len(lines) == 1 and lines[0].startswith("bringup: configuration error: "), r.stderr
+    assert expect in lines[0], lines[0]
+    origin = "given in params file" if "--params-file" in ros_args else "given with -p"
+    assert origin in lines[0] or "unknown" in lines[0], lines[0]
+    assert not node_processes(domain)
+
+
 def test_replay_stopped_mid_bag_says_so_and_where(small_bag):
     """A replay stopped by a signal does not claim to have finished: it tells how many of
     the bag's messages it published."""

@@ -436,6 +436,44 @@ def test_the_cli_logs_warnings_as_whole_lines_above_its_progress_bars(capsys):
     assert "\rframe 7: tracking lost against keyframe 2: too few inliers\n" in err, err
 
 
+def test_progress_bars_in_a_log_file_are_lines_with_messages_between(tmp_path):
+    """stderr redirected to a file (CI, nohup, `2> log`): tqdm's carriage returns and cursor
+    codes made one endless line with the messages glued into it. Through ProgressLines
+    each bar state is a line (throttled per bar, the final n/n always), nested bars too,
+    and a message written between bar updates is a line of its own."""
+    import io
+
+    from tqdm import tqdm
+
+    from neurncd_ros.core.text import ProgressLines
+
+    now = [0.0]
+    log = io.StringIO()
+    out = ProgressLines(log, interval=10.0, clock=lambda: now[0])
+    with tqdm(total=3, file=out, desc="sweep", mininterval=0) as outer:
+        for _ in range(3):
+            for j in tqdm(range(4), file=out, desc="scenes", leave=False, mininterval=0):
+                now[0] += 1.0
+                if j == 2:
+                    tqdm.write("scene lost a frame", file=out)
+            outer.update()
+    text = log.getvalue()
+    assert "\r" not in text and "\x1b" not in text, repr(text)
+    lines = text.splitlines()
+    assert all(line.startswith(("sweep:", "scenes:", "scene lost")) for line in lines), lines
+    assert lines.count("scene lost a frame") == 3
+    assert sum(line.startswith("scenes:") and "4/4" in line for line in lines) == 3
+    assert lines[-1].startswith("sweep: 100%") and "3/3" in lines[-1]
+    # throttled: 12 inner updates over 12 s of fake clock give a handful of lines, not 12
+    assert sum(line.startswith("scenes:") and "4/4" not in line for line in lines) <= 3
+
+    r = neurncd("synth", "--seed", 3, "--frames", 4, "--out", tmp_path / "s.db3", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "\r" not in r.stderr and r.stderr.startswith("synth seed 3:"), repr(r.stderr)
+    assert "as sqlite3" in r.stdout
+    assert sorted(p.suffix for p in (tmp_path / "s.db3").iterdir()) == [".db3", ".yaml"]
+
+
 def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_path):
     """What a user typing the commands wrongly reads: the subcommand's own usage for an
     unknown option, a hint to convert a dataset folder given as a bag, the reader options

@@ -43,7 +43,7 @@ import time
 
 from .common import (ConfigError, dds_profile_warning, diagnostics_status, ensure_dds_profile,
                      share_file)
-from .parameters import empty_lists, params_file_error
+from .parameters import empty_lists, given_with_p, params_file_error, started_configuration
 from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
 NODES = ("embedding", "mapper", "discovery")
@@ -79,8 +79,7 @@ def build_commands(params_file: str, bag: str | None, ros_args: list[str]
 
 def uses_sim_time(ros_args: list[str]) -> bool:
     """Whether the ROS arguments set ``use_sim_time`` true (``-p use_sim_time:=true``)."""
-    return any(a.replace(" ", "").lower() in ("use_sim_time:=true", "use_sim_time:=1")
-               for a in ros_args)
+    return given_with_p(ros_args).get("use_sim_time", "").strip().lower() in ("true", "1")
 
 
 class DrainWatcher:
@@ -202,17 +201,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"parameter file {args.params_file} does not exist")
     if args.bag and not os.path.exists(args.bag):
         parser.error(f"bag {args.bag} does not exist")
-    from .. import config as config_mod
 
     try:
         problem = (params_file_error(args.params_file)
                    or empty_lists(["--params-file", args.params_file, *ros_args]))
         if problem:
             raise ConfigError(problem)
-        topic = config_mod.load(args.params_file).topics.diagnostics
-        for i, a in enumerate(ros_args[:-1]):  # -p topics.diagnostics:=... beside the file
-            if a in ("-p", "--param") and ros_args[i + 1].startswith("topics.diagnostics:="):
-                topic = ros_args[i + 1].split(":=", 1)[1]
+        # What each node would refuse, refused once here, before any starts.
+        topic = started_configuration(args.params_file, ros_args).topics.diagnostics
     except ConfigError as err:
         print(f"bringup: configuration error: {err}", file=sys.stderr)
         return 2

@@ -149,6 +149,40 @@ def params_files(ros_args: list[str]) -> list[str]:
     return [ros_args[i + 1] for i, arg in enumerate(ros_args[:-1]) if arg == "--params-file"]
 
 
+def given_with_p(ros_args: list[str]) -> dict[str, str]:
+    """The ``-p NAME:=VALUE`` (``--param``) among ROS arguments: {NAME: VALUE text}, the
+    last one of a name winning as in rcl. The one reading of ``-p`` (bringup's sim time and
+    configuration, where a parameter came from, empty lists)."""
+    out: dict[str, str] = {}
+    for i, arg in enumerate(ros_args[:-1]):
+        if arg in ("-p", "--param") and ":=" in ros_args[i + 1]:
+            key, value = ros_args[i + 1].split(":=", 1)
+            out[key.strip()] = value
+    return out
+
+
+def started_configuration(params_file: str | Path, ros_args: list[str]) -> config_mod.Config:
+    """The configuration nodes started with ``--params-file params_file`` and ``ros_args``
+    read: the file, then the further ``--params-file`` files among ``ros_args`` and their
+    ``-p`` values (YAML, as rcl reads them) on top, in that order, validated as a node
+    validates it. Bringup checks it before starting any node, so a bad value is one error
+    naming where it was given, not one per node."""
+    from .. import config as config_mod
+
+    overrides: dict[str, Any] = {}
+    for path in params_files(ros_args):
+        overrides.update((k, v) for k, v in _file_parameters(path).items()
+                         if not isinstance(v, dict))
+    for key, text in given_with_p(ros_args).items():
+        overrides[key] = config_mod.read_yaml(text, f"-p {key}:={text}")
+    overrides = {k: v for k, v in overrides.items() if not config_mod.ros_builtin(k)}
+    try:
+        return config_mod.load(params_file, overrides)
+    except ConfigError as err:
+        key = str(err).removeprefix("override ").split("=", 1)[0].split(":", 1)[0]
+        raise ConfigError(f"{err}{parameter_origin(key + ':', ros_args)}") from None
+
+
 def _file_parameters(path: str) -> dict[str, Any]:
     """Every parameter a params file gives, by dotted name, sections included (``mapper``
     and ``mapper.lr``), with its value; {} for a file the configuration cannot read (that
@@ -179,9 +213,8 @@ def parameter_origin(message: str, ros_args: list[str]) -> str:
     key = message.split(":", 1)[0].strip()
     if not key or " " in key:
         return ""
-    for i, arg in enumerate(ros_args[:-1]):
-        if arg in ("-p", "--param") and ros_args[i + 1].split(":=", 1)[0] == key:
-            return " (given with -p)"
+    if key in given_with_p(ros_args):
+        return " (given with -p)"
     found = [path for path in params_files(ros_args) if key in _file_parameters(path)]
     return f" (given in params file {', '.join(found)})" if found else ""
 
@@ -193,9 +226,8 @@ def empty_lists(ros_args: list[str]) -> str:
     type PARAMETER_NOT_SET"). ``""`` if there are none."""
     found = [f"{key} in {path}" for path in params_files(ros_args)
              for key, value in _file_parameters(path).items() if value == []]
-    found += [f"{arg.split(':=', 1)[0]} given with -p" for i, arg in enumerate(ros_args)
-              if i and ros_args[i - 1] in ("-p", "--param")
-              and arg.replace(" ", "").endswith(":=[]")]
+    found += [f"{key} given with -p" for key, value in given_with_p(ros_args).items()
+              if value.replace(" ", "") == "[]"]
     if not found:
         return ""
     return (f"{', '.join(sorted(found))}: ROS cannot type an empty list; leave the key out "

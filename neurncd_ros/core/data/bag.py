@@ -139,10 +139,30 @@ def tf_msg(stamp_ns: int, transforms: list[tuple[str, str, np.ndarray]]) -> Any:
 
 # ---------------------------------------------------------------- writing
 
-def _storage_plugin(storage: str) -> Any:
-    from rosbags.rosbag2 import StoragePlugin
+_SUFFIX_STORAGE = {".mcap": "mcap", ".db3": "sqlite3"}
+
+
+def storage_for(path: str | Path, storage: str | None = None) -> str:
+    """The storage a bag at ``path`` is written in: ``storage``, or else the one its suffix
+    names (``.db3`` sqlite3, otherwise mcap).
+
+    A suffix naming the other storage is an error: ``--out scene.db3 --format mcap`` would
+    make a folder that says sqlite3 and holds an mcap file."""
+    named = _SUFFIX_STORAGE.get(Path(path).suffix.lower())
+    if storage is None:
+        return named or "mcap"
     if storage not in STORAGES:
         raise BagError(f"storage must be one of {', '.join(STORAGES)}, got {storage!r}")
+    if named is not None and named != storage:
+        raise BagError(f"{path}: its suffix {Path(path).suffix} says {named}, but the bag is "
+                       f"to be written as {storage}: name it {Path(path).stem}"
+                       f"{'.mcap' if storage == 'mcap' else '.db3'}, or leave the storage to "
+                       "the suffix")
+    return storage
+
+
+def _storage_plugin(storage: str) -> Any:
+    from rosbags.rosbag2 import StoragePlugin
     return StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
 
 
@@ -163,9 +183,10 @@ class _BagWriter:
     ``overwrite`` and replaced only by a complete one, and a write that fails (a frame the
     source cannot read, a bad message) leaves no bag and the old one as it was."""
 
-    def __init__(self, path: str | Path, storage: str, overwrite: bool) -> None:
+    def __init__(self, path: str | Path, storage: str | None, overwrite: bool) -> None:
         self.path = Path(path)
-        self.plugin = _storage_plugin(storage)
+        self.storage = storage_for(path, storage)
+        self.plugin = _storage_plugin(self.storage)
         self.overwrite = overwrite
         self.conns: dict[str, Any] = {}
         self.count = 0
@@ -213,8 +234,10 @@ class _BagWriter:
 
 
 def write_messages(path: str | Path, items: Iterable[tuple[str, str, int, Any]],
-                   storage: str = "mcap", overwrite: bool = False) -> int:
-    """Write (topic, msgtype, stamp_ns, message object or CDR bytes) items; returns count."""
+                   storage: str | None = None, overwrite: bool = False) -> int:
+    """Write (topic, msgtype, stamp_ns, message object or CDR bytes) items; returns count.
+
+    ``storage`` None: the one the path's suffix names (:func:`storage_for`)."""
     with _BagWriter(path, storage, overwrite) as w:
         for topic, msgtype, stamp_ns, msg in items:
             w.write(topic, msgtype, stamp_ns, msg)
@@ -262,7 +285,7 @@ def frame_messages(fr: Frame, topics: Topics = Topics(), depth_encoding: str = "
     return out
 
 
-def write_bag(path: str | Path, frames: Iterable[Frame], storage: str = "mcap",
+def write_bag(path: str | Path, frames: Iterable[Frame], storage: str | None = None,
               topics: Topics = Topics(), depth_encoding: str = "16UC1",
               color_encoding: str = "rgb8", progress: bool = False, pose_mode: str = "topic",
               overwrite: bool = False) -> int:
@@ -271,7 +294,8 @@ def write_bag(path: str | Path, frames: Iterable[Frame], storage: str = "mcap",
     Header stamps and bag times are ``frame.stamp_ns``; images use frame_id
     ``topics.camera_frame``, the pose ``topics.world_frame``. ``pose_mode``
     writes the pose on the pose topic, on /tf (world -> camera), both, or not at all
-    (``none``: a bag like a camera's without localisation).
+    (``none``: a bag like a camera's without localisation). ``storage`` None: the one the
+    path's suffix names (``.db3`` sqlite3, otherwise mcap; :func:`storage_for`).
     """
     from tqdm import tqdm
 

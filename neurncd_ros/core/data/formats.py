@@ -270,7 +270,7 @@ def bag_sync(sync: SyncConfig | None, tf_parent: str | None, tf_child: str | Non
     return dataclasses.replace(sync if sync is not None else SyncConfig(), **frames)
 
 
-def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str = "mcap",
+def convert(src: str | Path, out: str | Path, kind: str = "auto", storage: str | None = None,
             tf_parent: str | None = None, tf_child: str | None = None,
             to: str = "bag", progress: bool = False, poses: str = "source",
             odometry: Any = None, report: dict | None = None, overwrite: bool = False,
