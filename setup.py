@@ -26,6 +26,9 @@ RUNTIME_DEPENDENCIES = {
     "python3-torch": "torch",
     "python3-rosbags-pip": "rosbags",
 }
+# rosdep keys with no pip wheel: what `ros2 launch` needs for launch/neurncd.launch.py. A ROS
+# install has them; without it bringup starts the nodes (test_packaging checks package.xml).
+ROS_ONLY_DEPENDENCIES = ("launch", "launch_ros")
 
 NODES = ("embedding", "mapper", "discovery", "replay", "bringup")
 
@@ -38,6 +41,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
     ],
     # ROS installs provide these through rosdep (package.xml); pip users get
     # them pinned from requirements.txt. Only setuptools is needed to build.

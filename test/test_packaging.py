@@ -39,7 +39,8 @@ def test_package_xml_and_setup_py_agree():
     import neurncd_ros
     assert root.find("version").text == lit["VERSION"] == neurncd_ros.__version__
     exec_deps = {e.text for e in root.findall("exec_depend")}
-    assert exec_deps == set(lit["RUNTIME_DEPENDENCIES"])
+    assert exec_deps == set(lit["RUNTIME_DEPENDENCIES"]) | set(lit["ROS_ONLY_DEPENDENCIES"])
+    assert not set(lit["RUNTIME_DEPENDENCIES"]) & set(lit["ROS_ONLY_DEPENDENCIES"])
     pins = {}
     for line in (REPO / "requirements.txt").read_text().splitlines():
         line = line.split("#")[0].strip()
@@ -77,6 +78,8 @@ def test_colcon_build_installs_nodes_that_answer_help(tmp_path):
     assert (share / "package.xml").is_file()
     assert (share / "config" / "neurncd.yaml").is_file()
     assert (share / "config" / "fastdds_shm.xml").is_file()
+    # ros2 launch neurncd_ros neurncd.launch.py finds it here.
+    assert (share / "launch" / "neurncd.launch.py").is_file()
     assert (ws / "install" / "share" / "ament_index" / "resource_index" / "packages" /
             "neurncd_ros").exists() or (ws / "install" / "neurncd_ros" / "share" /
                                         "ament_index" / "resource_index" / "packages" /

@@ -1,0 +1,101 @@
+"""``ros2 launch neurncd_ros neurncd.launch.py``: the embedding, mapper and discovery nodes
+with one parameter file, and with ``bag:=...`` a replay of the bag into them.
+
+Arguments (``NAME:=VALUE`` after the file name):
+
+- ``params_file``: the parameter file of every node (default: the installed
+  ``share/neurncd_ros/config/neurncd.yaml``);
+- ``namespace``: the nodes' namespace (default ``''``, the root). The topic names are
+  absolute, so it moves the node names only (README, "On a robot");
+- ``use_sim_time``: ``true`` or ``false`` (default): the nodes' clocks follow /clock, and
+  the replay publishes the bag's time there (``replay.clock``), as bringup does;
+- ``bag``: a bag to replay into the nodes (the replay node's ``replay.bag``; default
+  ``''``: no replay, a live camera publishes the input topics).
+
+Before a node starts it points Fast DDS at the shipped shared-memory profile
+(``FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE``, and ``RMW_IMPLEMENTATION``) unless the user
+set them, with the nodes' own helper: default Fast DDS loses images over 1 MB. A
+parameter file or bag that does not exist stops the launch before any node starts (a
+parameter file launch_ros cannot find is only a warning, and the nodes would run on
+their defaults).
+
+The same start as ``bringup`` without its supervision, which is why bringup is the tested
+way: here the replay starts with the nodes (it waits for subscribers on the input topics
+itself, ``replay.wait_for_subscribers_s``, but not for the mapper and discovery to see
+their upstream node), and the nodes keep running after the bag until Ctrl-C.
+"""
+
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetEnvironmentVariable
+from launch.conditions import IfCondition
+from launch.substitutions import (AndSubstitution, LaunchConfiguration, NotEqualsSubstitution,
+                                  NotSubstitution)
+from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+
+from neurncd_ros.nodes.common import ensure_dds_profile
+
+PACKAGE = "neurncd_ros"
+NODES = ("embedding", "mapper", "discovery")
+
+
+def before_the_nodes(context, *args, **kwargs):
+    """At launch time, before the nodes: refuse a parameter file or bag that does not exist,
+    and set the Fast DDS variables the nodes' :func:`ensure_dds_profile` would set in the
+    environment the nodes inherit (only those the user has not set)."""
+    params_file = LaunchConfiguration("params_file").perform(context)
+    if not os.path.isfile(params_file):
+        raise RuntimeError(f"neurncd.launch.py: parameter file {params_file} does not exist")
+    bag = LaunchConfiguration("bag").perform(context)
+    if bag and not os.path.exists(bag):
+        raise RuntimeError(f"neurncd.launch.py: bag {bag} does not exist")
+    env = dict(context.environment)
+    ensure_dds_profile(env)
+    return [SetEnvironmentVariable(name, value) for name, value in env.items()
+            if context.environment.get(name) != value]
+
+
+def generate_launch_description():
+    """The arguments, the environment, the three nodes and the replay (under ``bag``)."""
+    params_file = LaunchConfiguration("params_file")
+    namespace = LaunchConfiguration("namespace")
+    use_sim_time = LaunchConfiguration("use_sim_time")
+    bag = LaunchConfiguration("bag")
+    # Typed: the values stay a bool and a string whatever they look like to YAML (a bag
+    # called 2024 or on), as bringup's -p values do for rcl.
+    sim_time = {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}
+    replay_bag = {"replay.bag": ParameterValue(bag, value_type=str)}
+    has_bag = NotEqualsSubstitution(bag, "")
+
+    def node(executable, *parameters, condition=None):
+        return Node(package=PACKAGE, executable=executable, namespace=namespace,
+                    parameters=[params_file, sim_time, *parameters], output="screen",
+                    condition=condition)
+
+    return LaunchDescription([
+        DeclareLaunchArgument(
+            "params_file",
+            default_value=os.path.join(get_package_share_directory(PACKAGE), "config",
+                                       "neurncd.yaml"),
+            description="ROS 2 parameter file of every node"),
+        DeclareLaunchArgument(
+            "namespace", default_value="",
+            description="namespace of the nodes (their topic names stay absolute)"),
+        DeclareLaunchArgument(
+            "use_sim_time", default_value="false", choices=["true", "false", "True", "False"],
+            description="the nodes' clocks follow /clock; the replay publishes the bag's time"),
+        DeclareLaunchArgument(
+            "bag", default_value="",
+            description="bag to replay into the nodes ('' = none: a live camera)"),
+        OpaqueFunction(function=before_the_nodes),
+        *(node(name) for name in NODES),
+        # The replay twice, under exclusive conditions: replay.clock is set only with
+        # use_sim_time, as bringup does, so a parameter file's replay.clock holds otherwise.
+        node("replay", replay_bag,
+             condition=IfCondition(AndSubstitution(has_bag, NotSubstitution(use_sim_time)))),
+        node("replay", replay_bag, {"replay.clock": True},
+             condition=IfCondition(AndSubstitution(has_bag, use_sim_time))),
+    ])
