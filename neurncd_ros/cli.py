@@ -65,6 +65,13 @@ def cmd_check_config(args: argparse.Namespace) -> int:
         print(f"{args.file}: {len(found)} errors", file=sys.stderr)
         return 2
     cfg = config_mod.load(args.file)  # one error (or one that ties parameters): as named
+    from .core.backbone.backbone import setup_problems
+
+    found = [f"{args.file}: backbone: {text}" for text in setup_problems(cfg.backbone)]
+    for text in found:  # what the embedding node and `run` would refuse at start
+        print(f"neurncd check-config: configuration error: {text}", file=sys.stderr)
+    if found:
+        return 2
     n = len(cfg.to_flat())
     print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections)")
     return 0

@@ -272,8 +272,13 @@ def test_config_validation(tmp_path):
     # Not a torch file at all (random bytes, a truncated copy of the shipped weights, the
     # weights' JSON record): one clear line naming the file, not torch's traceback.
     shipped = bb.DEFAULT_WEIGHTS.read_bytes()
+    noise = np.random.default_rng(3).integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    # A line of text, seeded noise and a small YAML file failed inside the weights-only
+    # unpickler as KeyError / IndexError: a traceback from every tool and node.
     for name, blob in (("random.pt", bytes(range(256)) * 12), ("cut.pt", shipped[:5000]),
-                       ("record.json", bb.DEFAULT_WEIGHTS.with_suffix(".json").read_bytes())):
+                       ("record.json", bb.DEFAULT_WEIGHTS.with_suffix(".json").read_bytes()),
+                       ("text.pth", b"this is not a checkpoint\n"), ("noise.pt", noise),
+                       ("cfg.pt", b"backbone:\n  kind: esanet\n")):
         (tmp_path / name).write_bytes(blob)
         with pytest.raises(ValueError, match=f"^cannot read checkpoint {tmp_path / name}: "):
             bb.load_backbone(bb.BackboneConfig(checkpoint=str(tmp_path / name)))

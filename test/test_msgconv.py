@@ -191,3 +191,20 @@ def test_bad_compressed_images_are_named(fmt, data, call, match):
     conv = msgconv.rgb_from_image if call == "rgb" else msgconv.depth_from_image
     with pytest.raises(MessageError, match="^/t: .*" + match):
         conv(NS(format=fmt, data=data), "/t")
+
+
+def test_class_table_carries_its_label_images_header():
+    """/neurncd/classes is a String: its JSON carries the label image's header, so a
+    subscriber pairs a table with its image by stamp (it could only go by arrival order)."""
+    import json
+
+    table = {3: {"name": "chair", "kind": "known", "pixels": 120},
+             101: {"name": "novel_101", "kind": "novel", "pixels": 0}}
+    text = msgconv.class_table_text(1_700_000_000_123_456_789, "camera", table)
+    d = json.loads(text)
+    assert d["header"] == {"stamp": {"sec": 1_700_000_000, "nanosec": 123_456_789},
+                           "frame_id": "camera"}
+    assert set(d["classes"]) == {"3", "101"}  # JSON keys are strings
+    assert msgconv.class_table_from_text(text) == (1_700_000_000_123_456_789, "camera", table)
+    with pytest.raises(msgconv.MessageError, match="/neurncd/classes: not a class table"):
+        msgconv.class_table_from_text('{"3": {"name": "chair"}}', "/neurncd/classes")

@@ -517,3 +517,18 @@ def test_check_config_names_every_error_of_a_file(tmp_path):
         assert f"configuration error: {bad}: {what}" in r.stderr, r.stderr
     good = neurncd("check-config", REPO / "config" / "neurncd.yaml", timeout=120)
     assert good.returncode == 0 and "valid (" in good.stdout
+    # Parameters that must agree (checked without loading a model): they were called
+    # valid, and the embedding node, `run` and bringup refused them later.
+    esanet = tmp_path / "esanet.yaml"
+    esanet.write_text("/**:\n  ros__parameters:\n    backbone:\n      kind: esanet\n"
+                      "      input_width: 320\n      input_height: 240\n")
+    r = neurncd("check-config", esanet, timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    for what in ("multiples of 32", "kind=esanet needs checkpoint"):
+        assert f"configuration error: {esanet}: backbone: " in r.stderr and what in r.stderr, \
+            r.stderr
+    esanet.write_text("/**:\n  ros__parameters:\n    backbone:\n      kind: esanet\n"
+                      f"      checkpoint: {tmp_path / 'absent.pth'}\n")
+    r = neurncd("check-config", esanet, timeout=120)
+    assert r.returncode == 2 and "ESANet checkpoint" in r.stderr and "does not exist" \
+        in r.stderr, r.stderr

@@ -4,7 +4,6 @@ stops everything once the bag is labelled; no process outlives it."""
 
 from __future__ import annotations
 
-import json
 import signal
 import time
 
@@ -114,22 +113,24 @@ def test_bringup_labels_a_replayed_bag_and_stops_when_done(scene_bag, tmp_path):
         ids = np.unique(lab)
         assert np.all((ids <= classes.NUM_CLASSES) | (ids >= classes.NOVEL_ID_START))
         assert (lab > 0).mean() > 0.9, "nearly every pixel of a labelled frame is labelled"
-    table = json.loads(tables[-1].data)
+    stamp, frame_id, table = msgconv.class_table_from_text(tables[-1].data)
     assert table and all(v["kind"] in ("known", "novel") for v in table.values())
     for key, v in table.items():
-        assert v["name"] == classes.class_name(int(key))
-    # The last label image and the last table were published together: every id the
-    # image shows is in the table, with the image's pixel count.
+        assert v["name"] == classes.class_name(key)
+    # Each table carries the header of its label image, so a subscriber pairs them by
+    # stamp: every id the image shows is in its table, with the image's pixel count.
+    assert stamp == msgconv.stamp_to_ns(labels[-1].header.stamp) and frame_id == "camera"
+    assert {msgconv.class_table_from_text(m.data)[0] for m in tables} <= set(got)
     last = msgconv.image_to_array(labels[-1], "/neurncd/labels")
     ids, counts = np.unique(last, return_counts=True)
-    shown = {str(int(i)): int(c) for i, c in zip(ids, counts) if i}
+    shown = {int(i): int(c) for i, c in zip(ids, counts) if i}
     assert {k: table.get(k, {}).get("pixels") for k in shown} == shown, (shown, table)
     assert "saved map to" in text  # at shutdown too
     # Discovery's state too, with the novel ids of the last table.
     from neurncd_ros.core.discovery.state import load_state
     assert f"saved discovery state to {tmp_path / 'discovery.pt'}" in text
     saved = load_state(tmp_path / "discovery.pt")["discovery"]
-    novel = sorted(int(k) for k, v in table.items() if v["kind"] == "novel")
+    novel = sorted(k for k, v in table.items() if v["kind"] == "novel")
     assert set(novel) <= {k for k, _ in saved["discoverer"]["_novel_members"]["__dict__"]}
 
 

@@ -316,3 +316,35 @@ def stamp_to_ns(stamp: Any) -> int:
 def ns_to_stamp(ns: int) -> tuple[int, int]:
     """Integer nanoseconds to (sec, nanosec)."""
     return int(ns) // 1_000_000_000, int(ns) % 1_000_000_000
+
+
+def class_table_text(stamp_ns: int, frame_id: str, table: dict[int, dict]) -> str:
+    """The /neurncd/classes message's JSON (std_msgs/String): ``{"header": {"stamp":
+    {"sec", "nanosec"}, "frame_id"}, "classes": {"<id>": {"name", "kind", "pixels"}}}``.
+
+    The header is the label image's, so a subscriber matches a table to its image by
+    stamp (a String has no header of its own; a subscriber that fell behind would
+    otherwise pair an image with another image's table)."""
+    import json
+
+    sec, nanosec = ns_to_stamp(stamp_ns)
+    return json.dumps({"header": {"stamp": {"sec": sec, "nanosec": nanosec},
+                                  "frame_id": frame_id},
+                       "classes": {str(k): v for k, v in table.items()}})
+
+
+def class_table_from_text(text: str, topic: str = "") -> tuple[int, str, dict[int, dict]]:
+    """(stamp in ns, frame_id, {id: {"name", "kind", "pixels"}}) of a /neurncd/classes
+    message's JSON (:func:`class_table_text`), for subscribers; MessageError if it is not
+    one."""
+    import json
+
+    try:
+        d = json.loads(text)
+        header = d["header"]
+        stamp = int(header["stamp"]["sec"]) * 1_000_000_000 + int(header["stamp"]["nanosec"])
+        table = {int(k): dict(v) for k, v in d["classes"].items()}
+        return stamp, str(header["frame_id"]), table
+    except (ValueError, TypeError, KeyError, AttributeError) as err:
+        raise MessageError(f"{_where(topic)}not a class table ({type(err).__name__}: "
+                           f"{err}): {text[:120]!r}") from None

@@ -60,6 +60,12 @@ def read_torch_file(path: str | Path, device: str = "cpu", what: str = "checkpoi
         detail = str(e).splitlines()[0] if str(e) else "file is empty or truncated"
         raise TorchFileError(f"cannot read {what} {path}: {type(e).__name__}: "
                              f"{detail}") from None
+    except Exception as e:  # noqa: BLE001 - the unpickler's own failures on other bytes
+        # Bytes that are not a torch file reach the weights-only unpickler as opcodes,
+        # where they fail as KeyError, IndexError, TypeError ... (a text file: KeyError
+        # 101, the byte 'e'): none says "not a torch file", and it is what they mean.
+        raise TorchFileError(f"cannot read {what} {path}: not a torch file (its bytes "
+                             f"fail to unpickle: {type(e).__name__} {e})") from None
 
 
 def check_save_path(path: str | Path, param: str) -> None:

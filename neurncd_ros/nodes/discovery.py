@@ -12,7 +12,6 @@ mean arrives latched on ``topics.rendered_spec``.
 
 from __future__ import annotations
 
-import json
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
@@ -115,8 +114,8 @@ def make_node():
                                               t.labels))
             self.pub_color.publish(image_msg(classes.colourise(rec.labels), "rgb8",
                                              rec.stamp_ns, frame_id, t.labels_color))
-            self.pub_classes.publish(String(data=json.dumps(
-                {str(k): v for k, v in rec.classes.items()})))
+            self.pub_classes.publish(String(data=msgconv.class_table_text(
+                rec.stamp_ns, frame_id, rec.classes)))
             self.health.count("published")
             self._save_state(force=False)
             return True

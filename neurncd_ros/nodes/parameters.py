@@ -165,8 +165,10 @@ def started_configuration(params_file: str | Path, ros_args: list[str]) -> confi
     """The configuration nodes started with ``--params-file params_file`` and ``ros_args``
     read: the file, then the further ``--params-file`` files among ``ros_args`` and their
     ``-p`` values (YAML, as rcl reads them) on top, in that order, validated as a node
-    validates it. Bringup checks it before starting any node, so a bad value is one error
-    naming where it was given, not one per node."""
+    validates it, and the backbone's setup as the embedding node checks it at start
+    (``setup_problems``: an ESANet without its checkpoint). Bringup checks it before
+    starting any node, so a bad value is one error naming where it was given, not one per
+    node (or one node's death after the others have started)."""
     from .. import config as config_mod
 
     overrides: dict[str, Any] = {}
@@ -177,10 +179,16 @@ def started_configuration(params_file: str | Path, ros_args: list[str]) -> confi
         overrides[key] = config_mod.read_yaml(text, f"-p {key}:={text}")
     overrides = {k: v for k, v in overrides.items() if not config_mod.ros_builtin(k)}
     try:
-        return config_mod.load(params_file, overrides)
+        cfg = config_mod.load(params_file, overrides)
     except ConfigError as err:
         key = str(err).removeprefix("override ").split("=", 1)[0].split(":", 1)[0]
         raise ConfigError(f"{err}{parameter_origin(key + ':', ros_args)}") from None
+    from ..core.backbone.backbone import setup_problems
+
+    problems = setup_problems(cfg.backbone)  # the embedding node's refusal at start
+    if problems:
+        raise ConfigError(f"backbone: {problems[0]}")
+    return cfg
 
 
 def _file_parameters(path: str) -> dict[str, Any]:

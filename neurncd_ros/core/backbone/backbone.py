@@ -424,15 +424,37 @@ def esanet_backbone(net: torch.nn.Module, cfg: BackboneConfig) -> Backbone:
                     preprocess, channels_last=True, input_dtype=dtype, graph=cfg.graph)
 
 
+def setup_problems(cfg: BackboneConfig) -> list[str]:
+    """What :func:`load_backbone` would refuse in ``cfg`` before reading any weights (the
+    parameters that must agree with each other, the checkpoint file present), each as one
+    line: ``neurncd check-config`` and bringup report them without loading a model, so a
+    file that says ``kind: esanet`` without a checkpoint is not called valid."""
+    out = []
+    if cfg.kind not in NATIVE_SIZE:
+        out.append(f"backbone kind must be 'default' or 'esanet', got {cfg.kind!r}")
+        return out
+    if cfg.features and cfg.kind != "default":
+        out.append("backbone.features (penultimate features in the embedding) is "
+                   "implemented for kind=default only")
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        out.append("backbone device 'cuda' requested but torch sees no CUDA device")
+    try:
+        _input_size(cfg)
+    except ValueError as err:
+        out.append(str(err))
+    if cfg.kind == "esanet" and not cfg.checkpoint:
+        out.append("kind=esanet needs checkpoint=<path to an ESANet R34-NBt1D .pth>; no "
+                   "ESANet weights ship with the package")
+    elif cfg.checkpoint and not Path(cfg.checkpoint).is_file():
+        what = "ESANet checkpoint" if cfg.kind == "esanet" else "backbone checkpoint"
+        out.append(f"{what} {cfg.checkpoint} does not exist")
+    return out
+
+
 def load_backbone(cfg: BackboneConfig | None = None) -> Backbone:
     """Build the configured backbone on its device, in eval mode, ready to predict."""
     cfg = cfg or BackboneConfig()
-    if cfg.kind not in NATIVE_SIZE:
-        raise ValueError(f"backbone kind must be 'default' or 'esanet', got {cfg.kind!r}")
-    if cfg.features and cfg.kind != "default":
-        raise ValueError("backbone.features (penultimate features in the embedding) is "
-                         "implemented for kind=default only")
-    if cfg.device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("backbone device 'cuda' requested but torch sees no CUDA device")
-    _input_size(cfg)  # fail early on a bad size
+    problems = setup_problems(cfg)
+    if problems:
+        raise ValueError(problems[0])
     return _load_esanet(cfg) if cfg.kind == "esanet" else _load_default(cfg)
