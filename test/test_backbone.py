@@ -440,6 +440,12 @@ def test_train_loop_learns_a_toy_task(tmp_path):
         bad = toy(4)
         bad["semantic"] = bad["semantic"].astype(np.int32)
         train.train_backbone(tmp_path / "x.pt", toy(4), bad, progress=False)
+    # A learning rate that makes the loss NaN: refused, nothing written (a diverged net's
+    # checkpoint was saved and every run with it ended in 'logits contain NaN or inf').
+    with pytest.raises(ValueError, match="training diverged at step .*lower the learning"):
+        train.train_backbone(tmp_path / "d.pt", toy(8), toy(4), epochs=3, batch_size=4,
+                             progress=False, command="test", crop=None, lr=1e12)
+    assert not (tmp_path / "d.pt").exists()
     # Fine-tuning from the weights just written keeps their record under "init".
     rec = train.train_backbone(tmp_path / "f.pt", toy(8), toy(4), epochs=1, batch_size=4,
                                progress=False, command="test", crop=None,

@@ -149,6 +149,26 @@ def test_embedding_stage_pairs_keeps_the_newest_and_gates_by_stamp(backbone, fra
         st.embed(stamp, rgb[:, :40], depth)
 
 
+def test_a_diverged_backbone_is_named_not_stored_as_infinities(backbone, frames):
+    """Logits of 1e9 (a checkpoint trained with too high a rate) became float16 infinities
+    in the keyframes and an error 'logits contain NaN or inf' stages later: the embedding
+    stage refuses them, saying what they mean."""
+
+    class Diverged:
+        def __getattr__(self, name):
+            return getattr(backbone, name)
+
+        def embed(self, *args, **kwargs):
+            return backbone.embed(*args, **kwargs) * 1e8
+
+    st = EmbeddingStage(Diverged(), EmbeddingNodeConfig(output_scale=0.5))
+    f = frames[0]
+    with pytest.raises(ValueError, match=r"logits reach .*default checkpoint looks diverged"):
+        st.embed(f.stamp_ns, f.rgb, f.depth)
+    ok = EmbeddingStage(backbone, EmbeddingNodeConfig(output_scale=0.5))
+    assert np.isfinite(ok.embed(f.stamp_ns, f.rgb, f.depth).embedding).all()
+
+
 def test_embedding_rate_gate_counts_from_the_pair_being_embedded(backbone, frames):
     """Online the backbone embeds a taken pair while the next ones arrive: those are
     gated against the taken pair's stamp, so a 30 Hz stream gated at 10 Hz is embedded

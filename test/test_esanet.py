@@ -103,6 +103,9 @@ def test_wrong_head_size_lists_keys_with_shapes(public_ckpt):
     assert "wrong shape" in msg
     assert "decoder.decoder_module_1.side_output.weight expected (40, 512, 1, 1) " \
            "found (37, 512, 1, 1)" in msg
+    # The fix first: the head says which dataset the checkpoint was trained for.
+    assert "its class head decoder.conv_out.weight has 37 classes, not 40: a SUN RGB-D " \
+           "checkpoint (backbone.esanet_dataset sunrgbd)" in msg.split("wrong shape")[0], msg
 
 
 def test_missing_and_unexpected_keys_are_named(tmp_path, model37):

@@ -483,7 +483,15 @@ def load_esanet_checkpoint(path: str | os.PathLike, num_classes: int | None = No
         model = ESANet(num_classes)
     report = _mismatch_report(model.state_dict(), sd)
     if report:
+        head = sd.get(HEAD_KEY)
+        found = int(head.shape[0]) if head is not None and head.ndim == 4 else None
+        # The class count first: a SUN RGB-D checkpoint read as NYUv2 lists five
+        # side-output shapes before its head, and the fix is one parameter.
+        hint = "" if found in (None, num_classes) else (
+            f"; its class head {HEAD_KEY} has {found} classes, not {num_classes}"
+            + {40: ": an NYUv2 checkpoint (backbone.esanet_dataset nyuv2)",
+               37: ": a SUN RGB-D checkpoint (backbone.esanet_dataset sunrgbd)"}.get(found, ""))
         raise CheckpointError(f"checkpoint {path} does not fit ESANet R34-NBt1D with "
-                              f"{num_classes} classes: {report}")
+                              f"{num_classes} classes{hint}: {report}")
     model.load_state_dict(sd, strict=True)
     return model.to(device).eval()

@@ -342,6 +342,14 @@ def train_backbone(out_path: str | Path, train: dict[str, np.ndarray],
                 g["lr"] = lr_at(step, total_steps)
             logs.append(train_step(model, opt, rgb, depth, tgt, weights, outlier_weight,
                                    novelty_branch))
+            if not math.isfinite(logs[-1]["loss"]):
+                bar.close()
+                # Nothing is saved: a diverged net's logits overflow float16 (the keyframe
+                # store) and every later run ends in 'logits contain NaN or inf'.
+                raise ValueError(f"training diverged at step {step + 1} (loss "
+                                 f"{logs[-1]['loss']}); nothing written: lower the learning "
+                                 f"rate (--lr, {lr:g} now; fine-tuning a pretrained ESANet "
+                                 "wants about 1e-4)")
             step += 1
             bar.update(1)
             bar.set_postfix(epoch=epoch,

@@ -22,6 +22,10 @@ from ..sync import StampSync, max_jump_param
 from .health import Health, report_starved, sync_reporter
 from .records import EmbeddingRecord, EmbeddingSpec
 
+MAX_LOGIT = 1.0e4
+"""Beyond this a logit is a diverged net's (a trained one's stay within tens): the frame is
+refused with that reason, not stored as float16 infinities that fail every later stage."""
+
 
 @dataclasses.dataclass(frozen=True)
 class EmbeddingNodeConfig:
@@ -132,6 +136,14 @@ class EmbeddingStage:
         emb = (self.backbone.embed(rgb, depth) if s == 1.0 else
                self.backbone.embed(rgb, depth, size=(max(1, round(h * s)),
                                                      max(1, round(w * s)))))
+        logits = emb[..., : self.spec.logit_channels]
+        peak = float(np.max(np.abs(logits))) if logits.size else 0.0
+        if not peak <= MAX_LOGIT:  # NaN too
+            raise ValueError(
+                f"the backbone's logits reach {peak:.3g} (a sane net's stay within tens; the "
+                f"keyframes hold them as float16, which ends at 65504): the "
+                f"{self.spec.backbone or 'backbone'} checkpoint looks diverged in training; "
+                "retrain it with a lower learning rate (train-backbone --lr)")
         self._last_stamp = int(stamp_ns)
         self.health.count("embedded")
         self.health.set_state("running")
