@@ -52,7 +52,7 @@ class ProgressLines:
     def _bar(self, state: str) -> None:
         named = self._NAME.match(state)
         name = named.group(1) if named else state.split(":")[0]
-        count = state.split(" [")[0]  # the bar without its times and rate
+        count = state.rsplit(" [", 1)[0]  # the bar without its times and rate
         if count == self.shown:  # the line just shown drawn again (closing its bar)
             return
         done = self._DONE.search(state)
