@@ -108,6 +108,14 @@ def test_the_field_learns_its_labels_and_names_known_classes_only(stream):
         for p, g in zip(preds, keep["semantic"]):
             ev.update(p, g)
         scores[f] = (info["label_fit"], ev.result()["miou_known"])
+    # semnerf.training_factor: the baseline's own budget, the engine's schedule scaled at
+    # every point (its fields were starved at the live schedule, with no way to train them).
+    longer = config.from_nested({"synth": {"width": 160, "height": 120},
+                                 "semnerf": {"training_factor": 2.5}})
+    short = {k: v[:4] for k, v in keep.items()}
+    short["iterations"] = [0, 2, 4, 6]
+    _, info = semnerf.semantic_nerf(short, longer, 0.10, 8)
+    assert info["iterations"] == 20 and info["training_factor"] == 2.5
     # At 10 % the field reproduces the classes of the pixels it was given.
     assert scores[0.10][0] > 0.9
     # Ten times the labels does not render the frames worse.

@@ -108,17 +108,20 @@ def check(agg: dict, bags: list[dict]) -> list[dict[str, Any]]:
     infos = [b.get("semnerf", {}).get(SEMNERF_ROW, {}) for b in bags]
     fit = [i["label_fit"] for i in infos if i.get("label_fit") is not None]
     fit_s = _span([round(100 * f) for f in fit]) + " %" if fit else "?"
+    sn_iterations = [i["iterations"] for i in infos if i.get("iterations") is not None]
+    sn_it = _span(sn_iterations) if sn_iterations else it
     if t["met"] is False:
         lab = _span([round(i["labels_per_keyframe"]) for i in infos
                      if i.get("labels_per_keyframe") is not None])
-        t["why"] = (f"with ground-truth labels at {lab} pixels per keyframe and the same "
-                    f"{it} iterations, the label-propagation field reproduces {fit_s} of its "
+        t["why"] = (f"with ground-truth labels at {lab} pixels per keyframe and {sn_it} "
+                    f"iterations, the label-propagation field reproduces {fit_s} of its "
                     f"labels and renders the known classes better than the engine's labels "
                     f"from the backbone, which had no ground truth")
     elif t["met"] and fit and min(fit) < FIT_CAVEAT:
         t["caveat"] = (f"the Semantic-NeRF fields reproduce only {fit_s} of their own labels "
-                       f"after the engine's {it} iterations: they are short of training, so "
-                       f"the margin measures the training budget more than the labels")
+                       f"after {sn_it} iterations: they are short of training, so the margin "
+                       f"measures the training budget more than the labels (train them longer "
+                       f"with --set semnerf.training_factor=25)")
     out.append(t)
     return out
 
