@@ -94,7 +94,8 @@ def _scene(job: tuple) -> dict:
 def main() -> None:
     global RESULTS
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--quick", action="store_true",
+                    help="2 short scenes (smoke); results in bench/results/quick/")
     ap.add_argument("--scenes", type=int, default=8)
     ap.add_argument("--frames", type=int, default=300,
                     help="frames per scene (300 = 10 s, the demo's length)")

@@ -560,8 +560,10 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="override a parameter (YAML value) for every row")
     ap.add_argument("--sweep", metavar="SECTION.KEY=V1,V2,...",
-                    help="only score one discovery parameter over these values on the tuning "
-                         "scenes (bench/results/ncd_sweep_<section>_<key>[_<set>].json), then stop")
+                    help="only score one parameter over these values on the tuning scenes "
+                         "(a discovery one on the cached views; one of the engine, e.g. "
+                         "keyframes.* or mapper_node.*, renders the scenes again per value; "
+                         "bench/results/ncd_sweep_<section>_<key>[_<set>].json), then stop")
     args = ap.parse_args()
     RESULTS = results_dir(args.quick)
     RESULTS.mkdir(parents=True, exist_ok=True)

@@ -267,13 +267,26 @@ def cmd_bench(args: argparse.Namespace) -> int:
               f"{', '.join(known)}", file=sys.stderr)
         return 2
     extra = ["--quick"] if args.quick else []
+    skipped = []
+    if args.quick:  # a benchmark without a quick mode would refuse --quick: left out
+        skipped = [s.stem for s in scripts if 'add_argument("--quick"' not in s.read_text()]
+        scripts = [s for s in scripts if s.stem not in skipped]
+        if args.names and skipped:
+            one = len(skipped) == 1
+            print(f"neurncd bench: error: {', '.join(skipped)} {'has' if one else 'have'} no "
+                  f"--quick mode; run {'it' if one else 'them'} without --quick",
+                  file=sys.stderr)
+            return 2
     failed = []
     for s in scripts:
         print(f"== bench/{s.name}", flush=True)
         if subprocess.call([sys.executable, str(s), *extra], cwd=REPO) != 0:
             failed.append(s.name)
-    print(f"benchmarks: {len(scripts) - len(failed)} ran, {len(failed)} failed "
-          f"{failed if failed else ''}; results in bench/results/{'quick/' if extra else ''}")
+    print(f"benchmarks: {len(scripts) - len(failed)} ran, {len(failed)} failed"
+          + (f" {failed}" if failed else "")
+          + (f", {len(skipped)} without a quick mode left out ({', '.join(skipped)})"
+             if skipped else "")
+          + f"; results in bench/results/{'quick/' if extra else ''}")
     return 1 if failed else 0
 
 

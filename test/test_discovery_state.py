@@ -97,3 +97,45 @@ def test_a_refused_state_is_kept_aside_and_a_folder_is_refused_at_start(views, t
     folder = dataclasses.replace(cfg.discovery_node, state_path=str(tmp_path))
     with pytest.raises(TorchFileError, match="is a folder: give a file path"):
         DiscoveryStage(cfg, folder)
+
+
+def test_the_state_is_saved_once_due_while_idle_and_only_when_something_is_new(views,
+                                                                               tmp_path):
+    """The node asks for a save after each view and while idle: what the last views
+    discovered reaches the file once save_period_s has passed even if no view follows (a
+    SIGKILL after the input stopped lost novel ids 105-108), and an idle node does not
+    rewrite an unchanged state every period."""
+    cfg, vs = views
+    now = [0.0]
+    path = tmp_path / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path), save_period_s=30)
+    stage = DiscoveryStage(cfg, node_cfg, clock=lambda: now[0])
+    for v in vs[:3]:
+        stage.label_view(v)
+    assert not stage.save_state(force=False) and not path.exists()  # not due yet
+    now[0] = 31.0  # idle since: the next idle call saves
+    assert stage.save_state(force=False) and path.is_file()
+    now[0] = 100.0
+    assert not stage.save_state(force=False), "nothing new: no rewrite"
+    stage.label_view(vs[3])
+    assert stage.save_state(force=False)
+    assert stage.health.counts["state_saves"] == 2
+
+
+def test_reset_forgets_the_discovered_classes_as_a_new_start_would(views):
+    """The discovery node's ~/reset (a new room into running nodes): the stage labels the
+    next views exactly as a stage that never saw the first ones, novel ids from 100."""
+    cfg, vs = views
+    k = len(vs) // 2
+    stage = DiscoveryStage(cfg, cfg.discovery_node)
+    for v in vs[:k]:
+        stage.label_view(v)
+    assert stage.discoverer.novel_ids
+    stage.reset()
+    assert not stage.discoverer.novel_ids
+    fresh = DiscoveryStage(cfg, cfg.discovery_node)
+    for v in vs[k:]:
+        a, b = stage.label_view(v), fresh.label_view(v)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        assert a.classes == b.classes
+    assert stage.health.counts["resets"] == 1

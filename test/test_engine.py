@@ -960,3 +960,43 @@ def test_mapper_stage_drops_a_far_future_stamp_and_reports_a_frame_without_pose(
     clock.t += 2 * cfg.mapper_node.sync_horizon_s
     st.offer("color", good[-1] + 4 * sec, frames[13].rgb)
     assert st.health.problems["unpaired"] == 2
+
+
+def test_a_bag_played_again_pairs_at_once_and_frees_the_views_in_flight(cfg, backbone,
+                                                                        frames):
+    """The same bag played a second time into a running mapper: the messages whose stamps
+    went back before the restart was clear are paired on the new timeline (they were
+    dropped: the first frames of every pass lost), and the old timeline's views in flight
+    are no longer waited for (the renderer sat out in_flight_timeout_s for labels that
+    never came)."""
+    st = _stage(cfg, max_in_flight=1)
+    st.offer_info(frames[0].intrinsics)
+    shown = frames[:24:3]
+
+    def play() -> list:
+        paired = []
+        for f in shown:
+            for stream, value in (("color", f.rgb), ("depth", f.depth), ("pose", f.pose),
+                                  ("embedding", _record(backbone, f))):
+                paired += st.offer(stream, f.stamp_ns, value)
+        return paired
+
+    play()
+    assert st.next_view() is not None and st.next_view() is None  # one in flight, unlabelled
+    assert st.health.counts["frames_paired"] == len(shown)
+    play()
+    assert st.sync.resets == 1 and st.sync.drops["out_of_order"] == 0
+    assert st.health.counts["frames_paired"] == 2 * len(shown), "every frame paired again"
+    assert st.next_view() is not None, "the old timeline's view in flight still held a slot"
+
+
+def test_reset_map_forgets_the_room_and_what_waits_to_be_fused(cfg, backbone, frames):
+    """The mapper node's ~/reset: the field and keyframes, and the held recent frames and
+    waiting keyframe views, so none of the old room is fused into the next one's views."""
+    st = _stage(cfg, max_in_flight=4)
+    for f in frames[:30:3]:
+        st.admit(f, _record(backbone, f))
+    assert len(st.mapper.buffer) and st.pending and st._recent_views(frames[40])
+    st.reset_map()
+    assert not len(st.mapper.buffer) and st.pending == 0 and not st._recent_views(frames[40])
+    assert st.health.counts["resets"] == 1

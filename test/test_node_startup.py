@@ -286,6 +286,27 @@ def test_replay_stopped_mid_bag_says_so_and_where(small_bag):
         text[-2000:]
 
 
+def test_replay_says_it_waits_for_subscribers_and_that_it_stopped_before_playing(
+        small_bag, tmp_path):
+    """A replay waiting for subscribers (up to replay.wait_for_subscribers_s) said nothing
+    for up to a minute, and stopped then it claimed '0 of 300 messages, 0.0 s after it
+    started': it says what it waits for, and that it stopped before playing."""
+    log = tmp_path / "replay.log"
+    proc = rosutil.start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                          f"replay.bag:={small_bag}", "-p",
+                          "replay.wait_for_subscribers_s:=120"],
+                         ros_env(rosutil.domain(14)), log)
+    try:
+        assert _wait_for(lambda: "waiting (at most 120 s" in log.read_text(), 60), \
+            log.read_text()
+    finally:
+        code = rosutil.stop(proc, 30)
+    text = log.read_text()
+    assert code == 0, text
+    assert "replay stopped before playing (while waiting for subscribers" in text, text
+    assert "s after it started" not in text and "replay finished" not in text, text
+
+
 @pytest.fixture
 def executor_node():
     """An rclpy node and a MultiThreadedExecutor of 2 threads spinning nothing yet, on a
@@ -474,3 +495,43 @@ def test_a_node_that_receives_nothing_says_where_it_listens(executor_node, capfd
     assert err.count("nothing received for 0 s on") == 1, err
     assert "/robot1/camera/color/image_raw (0 publishers)" in err, err
     assert "/camera/depth/image_raw (0 publishers)" in err and "topics.*" in err
+
+
+def test_a_node_says_when_an_input_loses_its_publisher_and_when_it_is_back(executor_node,
+                                                                           capfd):
+    """A killed mapper left discovery at 'running' with nothing said: an input that had a
+    publisher and has none any more is logged (and counted on /diagnostics as
+    inputs_without_publisher), and so is its return."""
+    from std_msgs.msg import String
+
+    from neurncd_ros.core.engine.health import Health
+    from neurncd_ros.nodes.common import InputWatch
+
+    node, executor = executor_node
+    import rclpy
+
+    watched = rclpy.create_node("watched_inputs", context=node.context)
+    health = Health("watched")
+    watch = InputWatch(watched, ["/upstream/view"], health=health)
+    try:
+        def publishers() -> int:
+            return watched.count_publishers("/upstream/view")
+
+        watch.check(received=0)  # nothing yet: not "gone"
+        assert health.gauges["inputs_without_publisher"] == 0
+        pub = node.create_publisher(String, "/upstream/view", 10)
+        assert _spin_until(executor, lambda: publishers() == 1)
+        watch.check(received=5)
+        node.destroy_publisher(pub)
+        assert _spin_until(executor, lambda: publishers() == 0)
+        watch.check(received=5)
+        assert health.gauges["inputs_without_publisher"] == 1
+        pub = node.create_publisher(String, "/upstream/view", 10)
+        assert _spin_until(executor, lambda: publishers() == 1)
+        watch.check(received=6)
+        assert health.gauges["inputs_without_publisher"] == 0
+    finally:
+        watched.destroy_node()
+    err = capfd.readouterr().err
+    assert err.count("no publisher on /upstream/view any more") == 1, err
+    assert err.count("/upstream/view has a publisher again") == 1, err

@@ -495,6 +495,10 @@ def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_pa
     r = neurncd("bench", "nosuch", "--quick")
     assert r.returncode == 2 and "no benchmark matched ['nosuch']; there are" in r.stderr
     assert "ncd" in r.stderr.split("there are", 1)[1]
+    # graph has no quick mode: named with --quick it is refused before anything runs (in
+    # `neurncd bench --quick` it is left out, and the summary says so).
+    r = neurncd("bench", "graph", "--quick")
+    assert r.returncode == 2 and "graph has no --quick mode" in r.stderr, r.stderr
     r = neurncd("synth", "--seed", 1, "--frames", 0, "--out", tmp_path / "s.mcap")
     assert r.returncode == 2 and "--frames: must be at least 1" in r.stderr
     assert not (tmp_path / "s.mcap").exists()

@@ -149,6 +149,9 @@ class StampSync:
         self._last_group_at = 0.0  # clock time of the group that set last_stamp
         self._backwards = 0
         self._jumps = 0
+        # Messages off the timeline (back, or ahead by a jump) held until it is clear
+        # whether the stream restarted (reset_after of them in a row) or they were strays.
+        self._held: list[tuple[str, int, Any, str, str]] = []
         self._since_group = collections.Counter()
         # Per partner stream, the (stamp, arrival) of its recent messages given up (expired,
         # or pushed out of a full queue): a reference message arriving after its partners
@@ -187,6 +190,7 @@ class StampSync:
         self.last_stamp = None
         self._backwards = 0
         self._jumps = 0
+        self._held = []
         self._since_group.clear()
         for q in self._given_up.values():
             q.clear()
@@ -240,27 +244,49 @@ class StampSync:
         if self.last_stamp is not None and stamp_ns < self.last_stamp - self.tolerance_ns:
             self._backwards += 1
             if self._backwards < self.reset_after:
-                self._drop(stream, "out_of_order")
-                self._anomaly(stream, "out_of_order", stamp_ns)
+                self._held.append((stream, stamp_ns, value, "out_of_order", ""))
                 return []
-            self.resets += 1
-            self._anomaly(stream, "time_reset", stamp_ns)
-            self.reset()
+            return self._restart(stream, stamp_ns, value, now)
         elif (self.last_stamp is not None and self.max_jump_ns > 0
               and stamp_ns > self.last_stamp + self.max_jump_ns
               + max(0, int((now - self._last_group_at) * 1e9))):
             self._jumps += 1
             if self._jumps < self.reset_after:
-                self._drop(stream, "jump")
-                self._anomaly(stream, "jump", stamp_ns,
-                              f"{(stamp_ns - self.last_stamp) / 1e9:.3g} s")
+                self._held.append((stream, stamp_ns, value, "jump",
+                                   f"{(stamp_ns - self.last_stamp) / 1e9:.3g} s"))
                 return []
-            self.resets += 1
-            self._anomaly(stream, "time_reset", stamp_ns)
-            self.reset()
+            return self._restart(stream, stamp_ns, value, now)
         else:
             self._backwards = 0
             self._jumps = 0
+            self._drop_held()
+        return self._store(stream, stamp_ns, value, now)
+
+    def _restart(self, stream: str, stamp_ns: int, value: Any, now: float
+                 ) -> list[tuple[int, dict[str, Any]]]:
+        """Stamps kept going back (or jumping): the pairing restarts on the new timeline,
+        with the messages held on the way there (a bag played again into running nodes
+        lost its first frames of every stream, and the views they made, until a reset)."""
+        held = self._held
+        self._held = []
+        self.resets += 1
+        self._anomaly(stream, "time_reset", stamp_ns)
+        self.reset()
+        groups = []
+        for h_stream, h_stamp, h_value, _, _ in held:
+            groups += self._store(h_stream, h_stamp, h_value, now)
+        return groups + self._store(stream, stamp_ns, value, now)
+
+    def _drop_held(self) -> None:
+        """The old timeline went on: the messages held against a restart were strays."""
+        for stream, stamp_ns, _, reason, detail in self._held:
+            self._drop(stream, reason)
+            self._anomaly(stream, reason, stamp_ns, detail)
+        self._held = []
+
+    def _store(self, stream: str, stamp_ns: int, value: Any, now: float
+               ) -> list[tuple[int, dict[str, Any]]]:
+        """Queue one message on the current timeline; the groups it completed."""
         queue = self._pending[stream]
         if any(s == stamp_ns for s, _, _ in queue):
             self._drop(stream, "duplicate")

@@ -198,10 +198,11 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
             executor = SingleThreadedExecutor()
             executor.add_node(node)
             topics = getattr(node, "topics", None)
-            node.get_logger().info(
-                "ready" + (f": state, counts and problems on {topics.diagnostics} once a "
-                           "second" if topics is not None else ""))
             done = getattr(node, "done", None)
+            if not (done and done.is_set()):  # a replay whose bag failed at once is not
+                node.get_logger().info(
+                    "ready" + (f": state, counts and problems on {topics.diagnostics} once "
+                               "a second" if topics is not None else ""))
             while (rclpy.ok() and not shutdown.requested.is_set()
                    and not (done and done.is_set())):
                 executor.spin_once(timeout_sec=0.1)  # short waits: signals are seen promptly
@@ -249,28 +250,51 @@ def wall_timer(node: Any, period_s: float, callback: Callable[[], Any]) -> Any:
 
 
 class InputWatch:
-    """Says once, as a warning, when a node has received nothing at all on its inputs
-    ``after_s`` after it started: the topics as resolved (namespace, remaps) and how many
-    publishers each has, so a wrong name or namespace shows at once instead of a graph
-    that waits in silence (the partial-input warnings need some input to arrive)."""
+    """Watches a node's input topics, on its diagnostics tick.
 
-    def __init__(self, node: Any, topics: list[str], after_s: float = 10.0) -> None:
-        self.node, self.topics, self.after_s = node, list(topics), after_s
+    Says once, as a warning, when the node has received nothing at all ``after_s`` after
+    it started: the topics as resolved (namespace, remaps) and how many publishers each
+    has, so a wrong name or namespace shows at once instead of a graph that waits in
+    silence (the partial-input warnings need some input to arrive). And says when an
+    input that had publishers has none any more (the camera, the replay or the upstream
+    node stopped; a killed mapper left discovery at "running" in silence) and when one
+    is back; ``health`` (optional) gets the count of such inputs as the gauge
+    ``inputs_without_publisher``."""
+
+    def __init__(self, node: Any, topics: list[str], after_s: float = 10.0,
+                 health: Any = None) -> None:
+        self.node, self.topics, self.after_s, self.health = node, list(topics), after_s, health
         self.started = time.monotonic()
         self.warned = False
+        self.published: dict[str, int] = {}  # topic -> publishers at the last tick
+        self.ever: dict[str, bool] = {}  # topic -> has had a publisher
+
+    def _name(self, topic: str) -> str:
+        try:
+            return self.node.resolve_topic_name(topic)
+        except Exception:  # noqa: BLE001 - an invalid name was refused at start anyway
+            return topic
 
     def check(self, received: int) -> None:
         """Call on the node's diagnostics tick with its count of messages received."""
+        counts = {t: self.node.count_publishers(self._name(t)) for t in self.topics}
+        for topic, n in counts.items():
+            before = self.published.get(topic)
+            if before and not n:
+                self.node.get_logger().info(
+                    f"no publisher on {self._name(topic)} any more: the camera, the replay "
+                    "or the upstream node has stopped; waiting for it to come back")
+            elif n and before == 0 and self.ever.get(topic):
+                self.node.get_logger().info(f"{self._name(topic)} has a publisher again")
+            self.ever[topic] = self.ever.get(topic, False) or bool(n)
+        self.published = counts
+        if self.health is not None:
+            self.health.gauge("inputs_without_publisher",
+                              sum(1 for t, n in counts.items() if self.ever[t] and not n))
         if self.warned or received or time.monotonic() - self.started < self.after_s:
             return
         self.warned = True
-        parts = []
-        for topic in self.topics:
-            try:
-                name = self.node.resolve_topic_name(topic)
-            except Exception:  # noqa: BLE001 - an invalid name was refused at start anyway
-                name = topic
-            parts.append(f"{name} ({self.node.count_publishers(name)} publishers)")
+        parts = [f"{self._name(t)} ({counts[t]} publishers)" for t in self.topics]
         self.node.get_logger().warning(
             f"nothing received for {self.after_s:g} s on {', '.join(parts)}: check the topic "
             "names (topics.* parameters, the namespace, remaps) and that the camera or the "

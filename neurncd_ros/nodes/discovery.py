@@ -7,11 +7,13 @@ to the stage, which pairs them; a worker labels complete views in order
 (segmentation, feature modulation, Markov clustering, stable novel ids) and
 publishes the label image, its colour rendering and the class table
 (transient local, so late subscribers get it). What the embedding channels
-mean arrives latched on ``topics.rendered_spec``.
+mean arrives latched on ``topics.rendered_spec``. Service ~/reset (std_srvs/Trigger)
+forgets the discovered classes (a new room).
 """
 
 from __future__ import annotations
 
+import threading
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (diagnostics_msg, header_ns, image_msg, latched_qos, output_qos,
@@ -20,7 +22,8 @@ from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Segments each rendered view's depth into convex segments, clusters them on "
                "the rendered embedding and entropy, and publishes /neurncd/labels (mono16), "
-               "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON).")
+               "/neurncd/labels_color (rgb8) and /neurncd/classes (JSON). Service ~/reset "
+               "(std_srvs/Trigger) forgets the discovered classes.")
 
 
 # Imported by run_node before rclpy (torch, scipy first), once the signal handlers are in.
@@ -33,6 +36,7 @@ def make_node():
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
+    from std_srvs.srv import Trigger
 
     from ..core import classes, msgconv
     from ..core.engine.discovery import DiscoveryStage
@@ -68,7 +72,10 @@ def make_node():
             self.pub_color = self.create_publisher(Image, t.labels_color, output_qos())
             self.pub_classes = self.create_publisher(String, t.classes, latched_qos())
             self.pub_diag = self.create_publisher(DiagnosticArray, t.diagnostics, 10)
-            self.input_watch = InputWatch(self, [t.rendered_embedding, t.view_depth])
+            self.input_watch = InputWatch(self, [t.rendered_embedding, t.view_depth],
+                                          health=self.health)
+            self._labelling = threading.Lock()  # a reset waits for the view being labelled
+            self.create_service(Trigger, "~/reset", self.on_reset)
             wall_timer(self, 1.0, self.publish_diagnostics)
             self.worker = Worker("discovery", self.step, self.health).start()
 
@@ -100,12 +107,17 @@ def make_node():
         def step(self, cancel) -> bool:
             view = self.stage.take()
             if view is None:
+                # Idle: what the last views discovered is saved once save_period_s has
+                # passed (it was saved only when a later view came, or at shutdown, which
+                # a SIGKILL skips: ids 105-108 were lost so).
+                self._save_state(force=False)
                 return False
             frame_id = self.frame_ids.pop(view.stamp_ns, self.topics.camera_frame)
             for old in [s for s in self.frame_ids if s < view.stamp_ns]:
                 del self.frame_ids[old]
             try:
-                rec = self.stage.label(view)
+                with self._labelling:
+                    rec = self.stage.label(view)
             except ValueError as err:
                 self.health.problem("view_skipped", f"view {view.stamp_ns} skipped: {err}")
                 return True
@@ -119,6 +131,16 @@ def make_node():
             self.health.count("published")
             self._save_state(force=False)
             return True
+
+        def on_reset(self, request, response):
+            """~/reset (std_srvs/Trigger): forget the discovered classes (a new room; the
+            mapper's ~/reset clears its map)."""
+            with self._labelling:
+                self.stage.reset()
+            response.success = True
+            response.message = "discovery reset: novel ids start from 100 again"
+            self.get_logger().info(response.message)
+            return response
 
         def _save_state(self, force: bool) -> None:
             """The discovery state to discovery_node.state_path (on the labelling thread,

@@ -68,7 +68,8 @@ def make_node():
                                      self.on_color, q)
             self.create_subscription(input_image_type(self.topics.depth), self.topics.depth,
                                      self.on_depth, q)
-            self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth])
+            self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth],
+                                          health=self.health)
             self.stage.stream_topics = {s: self.resolve_topic_name(getattr(self.topics, s))
                                         for s in ("color", "depth")}
             wall_timer(self, 1.0, self.publish_diagnostics)

@@ -143,7 +143,7 @@ def make_node():
             self.create_service(Trigger, "~/save_map", self.on_save)
             self.create_service(Trigger, "~/reset", self.on_reset)
             self.input_watch = InputWatch(self, [self.topics.color, self.topics.depth,
-                                                 self.topics.embedding])
+                                                 self.topics.embedding], health=self.health)
             self.stage.stream_topics = {s: self.resolve_topic_name(getattr(self.topics, s))
                                         for s in ("color", "depth", "embedding", "pose")}
             wall_timer(self, 1.0, self.on_tick)
@@ -368,8 +368,7 @@ def make_node():
 
         def on_reset(self, request, response):
             with self._intake_lock:  # not in the middle of admitting a keyframe
-                if self.stage.mapper is not None:
-                    self.stage.mapper.reset()
+                self.stage.reset_map()
             response.success, response.message = True, "map reset"
             return response
 

@@ -115,10 +115,16 @@ def make_node():
                 return
             end = time.monotonic() + limit
             counts, since, missing = None, 0.0, list(self.wait_topics)
+            said = False
             while time.monotonic() < end and not self._stop.is_set():
                 now = tuple(self.publishers_by_topic[x].get_subscription_count()
                             for x in self.wait_topics)
                 missing = [x for x, n in zip(self.wait_topics, now) if n == 0]
+                if missing and not said:  # a wait of up to a minute is not silent
+                    said = True
+                    self.get_logger().info(f"waiting (at most {limit:g} s, "
+                                           f"replay.wait_for_subscribers_s) for subscribers "
+                                           f"on {', '.join(missing)}")
                 if missing:
                     counts = None
                 elif now != counts:
@@ -161,8 +167,9 @@ def make_node():
 
         def _run(self) -> None:
             self._wait_for_subscribers()
-            if self.cfg.delay_s > 0 and self._stop.wait(self.cfg.delay_s):
-                return
+            if self._stop.is_set() or (self.cfg.delay_s > 0
+                                       and self._stop.wait(self.cfg.delay_s)):
+                return  # stopped before playing: close() says so
             self._started = time.monotonic()
             try:
                 while not self._stop.is_set():
@@ -201,7 +208,8 @@ def make_node():
         def stopped_summary(self) -> str:
             """Where a replay stopped before the end of its bag, in messages and seconds."""
             if self._started is None:
-                return f"replay stopped before playing: 0 of the bag's {self.in_bag} messages"
+                return (f"replay stopped before playing (while waiting for subscribers or "
+                        f"replay.delay_s): 0 of the bag's {self.in_bag} messages published")
             text = (f"replay stopped after {self.published_in_pass} of the bag's "
                     f"{self.in_bag} messages")
             if self.passes > 1:

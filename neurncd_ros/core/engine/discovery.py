@@ -56,9 +56,11 @@ class DiscoveryNodeConfig:
                             "every save_period_s and at shutdown; neurncd run loads it and "
                             "saves it at the end ('' = none: each start numbers novel "
                             "classes from 100 again)")
-    save_period_s: float = param(30.0, "with state_path: save the state this often while "
-                                 "labelling (0 = only at shutdown)", lo=0.0, hi=86400.0,
-                                 unit="s")
+    save_period_s: float = param(30.0, "with state_path: save the state at most this often "
+                                 "when views were labelled since the last save, also while "
+                                 "no view comes (so a node killed after its input stopped "
+                                 "keeps what it discovered); 0 = only at shutdown",
+                                 lo=0.0, hi=86400.0, unit="s")
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
@@ -112,6 +114,7 @@ class DiscoveryStage:
         self._saved_state = None
         self.continued: list[int] | None = None  # the novel ids a loaded state brought
         self._last_save = clock()
+        self._unsaved = False  # labelled since the last save
         self.state_refused: str | None = None  # why a loaded state was not continued
         path = node_cfg.state_path
         if path:
@@ -123,6 +126,22 @@ class DiscoveryStage:
         self._lock = threading.Lock()
         self.health.set_state("waiting", "no view yet")
 
+    def _new_discoverer(self, spec: EmbeddingSpec):
+        from ..discovery.labeller import Discoverer
+
+        c = self.cfg
+        return Discoverer(c.discovery, spec.ids(), mcl_cfg=c.mcl, seg_cfg=c.segmentation,
+                          mod_cfg=c.modulation, fusion_cfg=c.label_fusion)
+
+    def reset(self) -> None:
+        """Forget what was discovered (segment memory, clusters, novel ids, label fusion):
+        a new room. Novel ids start from 100 again; the next save overwrites the state
+        file. Call it from the thread that labels."""
+        if self.spec is not None:
+            self.discoverer = self._new_discoverer(self.spec)
+            self._unsaved = True
+        self.health.count("resets")
+
     def set_spec(self, spec: EmbeddingSpec) -> None:
         """The meaning of the embedding channels; a new spec starts a new discovery."""
         if spec != self.spec:
@@ -130,11 +149,7 @@ class DiscoveryStage:
                 self.health.problem("spec_changed", f"embedding spec changed from "
                                     f"{self.spec.to_json()} to {spec.to_json()}: "
                                     "discovery restarts")
-            from ..discovery.labeller import Discoverer
-            c = self.cfg
-            self.discoverer = Discoverer(c.discovery, spec.ids(), mcl_cfg=c.mcl,
-                                         seg_cfg=c.segmentation, mod_cfg=c.modulation,
-                                         fusion_cfg=c.label_fusion)
+            self.discoverer = self._new_discoverer(spec)
             self.spec = spec
             saved, self._saved_state = self._saved_state, None
             if saved is not None:
@@ -160,19 +175,23 @@ class DiscoveryStage:
                                      f"novel ids {d.novel_ids}")
 
     def save_state(self, force: bool = True) -> bool:
-        """Save the discovery state to ``state_path`` (when due, unless ``force``); False
-        when there is no path or nothing learnt yet. Call it from the thread that labels."""
+        """Save the discovery state to ``state_path`` (unless ``force``, only when a view was
+        labelled since the last save and ``save_period_s`` has passed); False when there is
+        no path, nothing learnt yet or nothing new. Call it from the thread that labels:
+        the node calls it after each view and while idle, so what was discovered just
+        before the input stopped is saved within the period, not only at shutdown."""
         path = self.node_cfg.state_path
         if not path or self.discoverer is None:
             return False
         now = self._clock()
         period = self.node_cfg.save_period_s
-        if not force and (period <= 0 or now - self._last_save < period):
+        if not force and (not self._unsaved or period <= 0
+                          or now - self._last_save < period):
             return False
         from ..discovery.state import save_state
 
         save_state(path, {"discovery": self.discoverer.state()})
-        self._last_save = now
+        self._last_save, self._unsaved = now, False
         self.health.count("state_saves")
         return True
 
@@ -253,6 +272,7 @@ class DiscoveryStage:
                                                       np.float32), h, w)
         labels = self.discoverer.process(depth, intrinsics, logits, ent, view.stamp_ns,
                                          rgb, features, view.pose)
+        self._unsaved = True
         if labels.shape != full:
             labels = cv2.resize(labels, (full[1], full[0]), interpolation=cv2.INTER_NEAREST)
         self.health.count("labelled")

@@ -255,8 +255,9 @@ class MapperStage:
                               cfg.sync_horizon_s, capacity=max(4, 2 * cfg.queue_size,
                                                                int(30 * cfg.sync_horizon_s)),
                               clock=clock,
-                              on_anomaly=sync_reporter(self.health),
+                              on_anomaly=self._on_sync_anomaly,
                               max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
+        self._report_sync = sync_reporter(self.health)
         self.mapper = None
         self.spec: EmbeddingSpec | None = None
         self.intrinsics: Intrinsics | None = None
@@ -335,6 +336,28 @@ class MapperStage:
             self.health.problem("camera_info_changed", f"camera info changed from "
                                 f"{self.intrinsics} to {intrinsics}: new frames use it")
         self.intrinsics = intrinsics
+
+    def reset_map(self) -> None:
+        """The map node's ~/reset: forget the field and its keyframes, and the held recent
+        frames and waiting keyframe views with them (they would be fused into, or
+        rendered in, the new room's first views)."""
+        with self._lock:
+            if self.mapper is not None:
+                self.mapper.reset()
+            self._recent.clear()
+            self._keyframe_jobs.clear()
+            self._latest = None
+        self.health.count("resets")
+
+    def _on_sync_anomaly(self, stream: str, reason: str, stamp_ns: int,
+                         detail: str = "") -> None:
+        """The pairing's reports (called by ``self.sync``, under ``self._lock``). On a
+        new timeline (a bag played again) the views in flight of the old one are no longer
+        waited for: discovery restarts its own pairing too, and the renderer sat out
+        in_flight_timeout_s for labels of them that never came."""
+        self._report_sync(stream, reason, stamp_ns, detail)
+        if reason == "time_reset":
+            self._in_flight.clear()
 
     def offer(self, stream: str, stamp_ns: int, value: Any) -> list[ViewJob]:
         """One input message (EmbeddingRecord, rgb, depth or 4x4 pose); the frames it
