@@ -82,7 +82,7 @@ sys.path.insert(0, str(REPO))
 from _common import commit, parse_sweep  # noqa: E402  (bench/ is on sys.path)
 
 RESULTS = REPO / "bench" / "results"
-DOMAIN = 88
+DOMAIN = 231  # default ROS_DOMAIN_ID: above the test sessions' 1..224 (--domain-id)
 PROBE_REFERENCE_MS = 40.0  # the machine the issue's rate and latency targets are set for
 
 RECORDER = textwrap.dedent("""
@@ -147,6 +147,8 @@ def make_bag(seed: int, frames: int, poses: str = "bag",
 
 
 def ros_env() -> dict[str, str]:
+    """The graph's environment: this machine only, its own domain id (the traffic of
+    another graph on the same id would be measured with this one's)."""
     env = dict(os.environ)
     env.update(ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=str(DOMAIN),
                PYTHONUNBUFFERED="1")
@@ -458,8 +460,12 @@ def sweep(bag: Path, work: Path, base: list[str], key: str, values: list[str], r
 
 
 def main() -> None:
+    global DOMAIN
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=None, help="default: the first test seed")
+    ap.add_argument("--domain-id", type=int, default=DOMAIN,
+                    help=f"ROS_DOMAIN_ID of the measured graph (default {DOMAIN}; traffic stays "
+                         "on this machine): give another to run two at once")
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY:=VALUE",
                     help="ROS parameter override passed to every node (-p)")
@@ -475,6 +481,9 @@ def main() -> None:
                     help="frames of this size instead of 320x240, e.g. 640x480 (the size of "
                     "NYUv2, TUM and Replica); writes graph_<W>x<H>.json / .png")
     args = ap.parse_args()
+    if not 0 <= args.domain_id <= 232:
+        ap.error(f"--domain-id must be in 0..232 (ROS 2 on Linux), got {args.domain_id}")
+    DOMAIN = args.domain_id
     size = None
     if args.size:
         try:

@@ -336,10 +336,10 @@ def test_storage_follows_the_suffix(tmp_path):
     bag.write_bag(tmp_path / "s.db3", frames)
     bag.write_bag(tmp_path / "m.mcap", frames)
     bag.write_bag(tmp_path / "plain", frames, storage="sqlite3")
-    assert [p.suffix for p in (tmp_path / "s.db3").iterdir() if p.name != "metadata.yaml"] \
-        == [".db3"]
-    assert [p.suffix for p in (tmp_path / "m.mcap").iterdir() if p.name != "metadata.yaml"] \
-        == [".mcap"]
+    # the storage file is named after the folder without doubling its suffix
+    assert sorted(p.name for p in (tmp_path / "s.db3").iterdir()) == ["metadata.yaml", "s.db3"]
+    assert sorted(p.name for p in (tmp_path / "m.mcap").iterdir()) == ["m.mcap",
+                                                                       "metadata.yaml"]
     assert len(list(FrameReader(tmp_path / "s.db3"))) == 1
     assert (tmp_path / "plain" / "plain.db3").is_file()
     with pytest.raises(BagError, match=r"suffix \.db3 says sqlite3.*name it x\.mcap"):

@@ -1000,3 +1000,17 @@ def test_reset_map_forgets_the_room_and_what_waits_to_be_fused(cfg, backbone, fr
     st.reset_map()
     assert not len(st.mapper.buffer) and st.pending == 0 and not st._recent_views(frames[40])
     assert st.health.counts["resets"] == 1
+
+
+def test_summary_says_what_was_left_unrendered(cfg, backbone, frames):
+    """The mapper's exit line: keyframe views still queued at shutdown were never rendered
+    nor labelled, and the line says so (it counted only what was done)."""
+    st = _stage(cfg, max_in_flight=4)
+    assert "not rendered or labelled" not in st.summary()
+    for f in frames[:30:3]:
+        st.admit(f, _record(backbone, f))
+    queued = len(st._keyframe_jobs)
+    assert queued and f"{queued} keyframe view" in st.summary()
+    while st.next_view() is not None:
+        pass
+    assert "awaiting labels" in st.summary()

@@ -382,8 +382,11 @@ def make_node():
                     self.get_logger().info(f"saved map to {self.node_cfg.map_path}")
                 except (OSError, RuntimeError, ValueError) as err:
                     self.get_logger().error(f"could not save the map: {err}")
+            left = len(self.intake)
             self.get_logger().info(self.stage.summary() + f", problems "
-                                   f"{dict(self.health.problems)}; {self.poses.summary()}")
+                                   f"{dict(self.health.problems)}; {self.poses.summary()}"
+                                   + (f"; {left} input message{'s' * (left != 1)} not yet "
+                                      "taken in" if left else ""))
 
     return MapperNode()
 

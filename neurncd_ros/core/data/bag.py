@@ -191,6 +191,15 @@ class _BagWriter:
         self.conns: dict[str, Any] = {}
         self.count = 0
 
+    def _stem(self) -> str:
+        """The storage file's name without its extension: ``scene.db3`` holds
+        ``scene.db3`` and ``scene.mcap`` holds ``scene.mcap`` (rosbags names the file after
+        its folder, which would double the suffix)."""
+        name = self.path.name
+        suffix = self.path.suffix.lower()
+        return name[:-len(suffix)] if suffix in _SUFFIX_STORAGE and len(name) > len(suffix) \
+            else name
+
     def __enter__(self) -> "_BagWriter":
         from rosbags.rosbag2 import Writer
 
@@ -198,7 +207,7 @@ class _BagWriter:
 
         self._out = replacing_output(self.path, self.overwrite,
                                      lambda p: (p / "metadata.yaml").is_file(), "bag folder",
-                                     BagError)
+                                     BagError, staged_name=self._stem())
         target = self._out.__enter__()
         try:
             self.writer = Writer(target, version=9, storage_plugin=self.plugin)

@@ -422,13 +422,17 @@ def detect_kind(folder: str | Path) -> str:
 
 @contextlib.contextmanager
 def replacing_output(path: str | Path, overwrite: bool, is_kind: Callable[[Path], bool],
-                     kind: str, error: type[Exception] = FormatError) -> Iterator[Path]:
+                     kind: str, error: type[Exception] = FormatError,
+                     staged_name: str | None = None) -> Iterator[Path]:
     """Where to write an output folder (a bag, a Replica or TUM folder) so that nothing
     is lost: an existing ``path`` is refused without ``overwrite``, and with it replaced
     only once the new output is complete; a write that fails leaves ``path`` as it was
     and nothing beside it. (A failed ``convert --overwrite`` once deleted the old bag; a
     Replica folder was silently rewritten in place.) ``is_kind`` tells an existing folder
-    of this kind (never overwritten otherwise: it may be anything of the user's)."""
+    of this kind (never overwritten otherwise: it may be anything of the user's).
+    ``staged_name``: the name the folder is written under before it is moved to ``path``
+    (a bag's storage file is named after its folder: rosbags would write
+    ``scene.db3/scene.db3.db3``)."""
     path = Path(path)
     if path.exists():
         if not overwrite:
@@ -438,7 +442,7 @@ def replacing_output(path: str | Path, overwrite: bool, is_kind: Callable[[Path]
     staging = path.parent / f".{path.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)  # a killed earlier write's
     staging.mkdir(parents=True)
-    target = staging / path.name  # the final name: a bag's storage file is named after it
+    target = staging / (staged_name or path.name)
     try:
         yield target
         if path.exists():

@@ -609,4 +609,17 @@ class MapperStage:
                 f"rendered {c['views']} ({c['views_keyframe']} keyframes), frames not "
                 f"rendered {c['skipped_newer'] + c['skipped_stale']} (a newer frame first "
                 f"{c['skipped_newer']}, stale {c['skipped_stale']}), iterations {it}, "
-                f"unpaired inputs {json.dumps(dict(self.sync.drops))}")
+                f"unpaired inputs {json.dumps(dict(self.sync.drops))}" + self._left())
+
+    def _left(self) -> str:
+        """What the stage still held (said at shutdown: a keyframe view queued but never
+        rendered was never labelled either)."""
+        with self._lock:
+            kf, newest, flight = (len(self._keyframe_jobs), self._latest is not None,
+                                  len(self._in_flight))
+        if not (kf or newest or flight):
+            return ""
+        parts = [f"{kf} keyframe view{'s' * (kf != 1)} queued"] if kf else []
+        parts += ["the newest frame"] if newest else []
+        parts += [f"{flight} view{'s' * (flight != 1)} awaiting labels"] if flight else []
+        return f"; not rendered or labelled: {', '.join(parts)}"
