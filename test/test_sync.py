@@ -152,6 +152,48 @@ def test_a_reference_message_given_up_unpaired_names_the_missing_streams():
     assert seen == [("embedding", "unpaired", 300 * MS, "pose")]
 
 
+def test_inputs_whose_stamps_never_agree_are_reported_before_any_pair():
+    """A pose stamped 50 ms after its frame (stamped when it was computed), at 20 ms
+    tolerance: nothing ever pairs, and the node said nothing at all (the reports waited
+    for a first group). Each embedding that expires while the pose does arrive is reported
+    as ``apart``, with the offset of the nearest pose (also when that pose expired
+    first); one whose partners come late (a backbone seconds behind) as ``late``; at a
+    start whose first partners predate the subscription, still nothing."""
+    clock = Clock()
+    seen = []
+    s = sync.StampSync(("embedding", "color", "pose"), tolerance_ns=20 * MS, horizon_s=1.0,
+                       clock=clock, on_anomaly=lambda *a: seen.append(a))
+    for k in range(12):                                     # 6 Hz, pose 50 ms after
+        clock.t = k / 6
+        s.add("pose", k * 166 * MS + 50 * MS, f"p{k}")
+        s.add("color", k * 166 * MS, f"c{k}")
+        assert s.add("embedding", k * 166 * MS, f"e{k}") == []
+    assert s.groups == 0 and seen, "frames that never pair are reported"
+    assert {a[:2] for a in seen} == {("embedding", "apart")}
+    assert seen[0][2] == 0
+    assert seen[0][3] == "the nearest pose is stamped 50.0 ms after it (sync tolerance 20 ms)"
+    # Partners that come, but seconds before their embedding: late, not apart.
+    seen.clear()
+    slow = sync.StampSync(("embedding", "color"), tolerance_ns=MS, horizon_s=1.0,
+                          clock=clock, on_anomaly=lambda *a: seen.append(a))
+    clock.t = 10.0
+    slow.add("color", 0, "c0")
+    clock.t = 11.5                                          # c0 expires on this add
+    slow.add("embedding", 0, "e0")
+    clock.t = 13.0
+    slow.add("color", 100 * MS, "c1")                       # e0 expires in its turn
+    assert seen == [("embedding", "late", 0, "color (1.5 s before it)")]
+    # A healthy start: the first colour predates the subscription; the next pair supersedes
+    # the lone embedding before it could expire: nothing to report.
+    seen.clear()
+    start = sync.StampSync(("embedding", "color"), tolerance_ns=MS, horizon_s=1.0,
+                           clock=clock, on_anomaly=lambda *a: seen.append(a))
+    start.add("embedding", 0, "e0")
+    start.add("color", 100 * MS, "c1")
+    assert start.add("embedding", 100 * MS, "e1")[0][0] == 100 * MS
+    assert seen == []
+
+
 def test_a_reference_message_after_its_partners_expired_is_reported_late():
     """An embedding that comes after its colour and pose waited the horizon and expired
     (a backbone seconds behind) is reported as late, with how far behind, not as a frame

@@ -116,9 +116,12 @@ class StampSync:
     expected to be missing and are not), or ``late`` when its partners did come but had
     been given up before it arrived, expired or pushed out of a full queue (``detail``:
     those streams and how long before it they came; the stage upstream is that far
-    behind);
+    behind); before the first group, a message of the reference stream that expires while
+    every stream it missed arrives is ``apart`` (``detail``: how far from its stamp the
+    nearest message of each is: stamps that never agree, so nothing ever pairs) or
+    ``late``;
     :meth:`starved` names streams that do not arrive while others do (a wrong topic
-    name or stamps that never agree), which a node reports in a warning.
+    name), which a node reports in a warning.
     """
 
     REASONS = ("expired", "superseded", "overflow", "duplicate", "out_of_order", "jump")
@@ -200,11 +203,21 @@ class StampSync:
         return [s for s in self.streams[1:]
                 if not any(abs(e[0] - stamp_ns) <= self.tolerance_ns for e in self._pending[s])]
 
-    def _report_unpaired(self, entries) -> None:
+    def _nearest_offset(self, stream: str, stamp_ns: int) -> int | None:
+        """Signed ns from ``stamp_ns`` to the nearest message ``stream`` has pending or gave
+        up recently; None if it has none."""
+        stamps = [e[0] for e in self._pending[stream]] + [st for st, _ in self._given_up[stream]]
+        return min((t - stamp_ns for t in stamps), key=abs, default=None)
+
+    def _report_unpaired(self, entries, expired: bool = False) -> None:
         """Report the reference stream's ``entries`` given up unpaired (expired, or older
-        than a group just made), naming the streams that had nothing near each; only once
-        the streams have paired before (earlier partners predate the subscription)."""
-        if not self.groups:
+        than a group just made), naming the streams that had nothing near each. Before the
+        first group, partners sent before the node subscribed are expected to be missing:
+        only an entry that ``expired`` while every stream it missed does arrive is reported,
+        as ``apart`` with how far the nearest message of each is (stamps that never agree:
+        a pose stamped on arrival, colour and depth stamped apart), or ``late``; until then
+        a node whose inputs never paired said nothing at all."""
+        if not self.groups and not expired:
             return
         for stamp, arrival, _ in entries:
             missing = self._missing(stamp)
@@ -214,6 +227,16 @@ class StampSync:
                 if near:
                     late[s] = arrival - max(near)
             absent = [s for s in missing if s not in late]
+            if not self.groups:
+                offsets = {s: self._nearest_offset(s, stamp) for s in absent}
+                if any(d is None for d in offsets.values()):
+                    continue  # a stream with nothing yet: starved() names it
+                if offsets:
+                    self._anomaly(self.streams[0], "apart", stamp, ", ".join(
+                        f"the nearest {s} is stamped {abs(d) / 1e6:.1f} ms "
+                        f"{'after' if d > 0 else 'before'} it" for s, d in offsets.items())
+                        + f" (sync tolerance {self.tolerance_ns / 1e6:g} ms)")
+                    continue
             if absent:
                 self._anomaly(self.streams[0], "unpaired", stamp, ", ".join(absent))
             elif late:
@@ -222,7 +245,7 @@ class StampSync:
 
     def _expire(self, now: float) -> None:
         self._report_unpaired([e for e in self._pending[self.streams[0]]
-                               if now - e[1] > self.horizon_s])
+                               if now - e[1] > self.horizon_s], expired=True)
         for s, q in self._pending.items():
             gone = [e for e in q if now - e[1] > self.horizon_s]
             if gone:

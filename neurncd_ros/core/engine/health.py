@@ -186,6 +186,11 @@ def sync_reporter(health, names: dict[str, str] | None = None):
                      "dropped; the stage upstream is that far behind (a slow machine, "
                      "large images): raise sync_horizon_s and queue_size, or lower the "
                      "load (smaller images, a lower rate)",
+             "apart": "{n}: no frame has paired yet: the frame stamped {s} is given up: "
+                      "{d}: the inputs' stamps must agree (a pose stamped when it was "
+                      "computed rather than with its image's stamp, colour and depth not "
+                      "registered to one stamp): stamp them alike, or raise "
+                      "sync_tolerance_ms if they are this far apart by design",
              "time_reset": "{n}: stamps went back or jumped ahead (bag loop, new bag or "
                            "clock reset): pairing restarts"}
 
