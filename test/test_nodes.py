@@ -502,6 +502,74 @@ def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_n
     assert code == 0, text[-2000:]
 
 
+def test_mapper_says_when_another_publishers_poses_are_ignored(ros_node, tmp_path):
+    """With poses from odometry (pose_source auto chooses it when no pose comes within
+    pose_auto_wait_s, e.g. a SLAM started after the camera) the mapper publishes them on
+    the pose topic and ignores what arrives there: its own poses, and another publisher's,
+    which it ignored in silence. It says so now (problem ``pose_ignored``), and not for its
+    own poses."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neurncd_ros import synth
+    from neurncd_ros.nodes.common import (camera_info_msg, image_msg, output_qos, pose_msg,
+                                          sensor_qos)
+
+    node, domain = ros_node
+    frames = list(synth.generate(1004, 20, synth.SynthConfig(width=96, height=72, fps=6.0)))
+    log = tmp_path / "mapper.log"
+    proc = start(["-m", "neurncd_ros.nodes.mapper", "--ros-args",
+                  "-p", "mapper_node.pose_source:=odometry",
+                  "-p", "mapper_node.odometry_frames:=all",
+                  "-p", "mapper_node.log_throttle_s:=0.5"], ros_env(domain), log)
+    ignored = "poses from another publisher on /camera/pose are ignored"
+    try:
+        diag = diagnostics_of(node, ("mapper",))
+        pubs = {t: node.create_publisher(m, t, q) for t, m, q in (
+            ("/camera/color/image_raw", Image, sensor_qos(10)),
+            ("/camera/depth/image_raw", Image, sensor_qos(10)),
+            ("/camera/color/camera_info", CameraInfo, sensor_qos(10)),
+            ("/camera/pose", PoseStamped, output_qos()))}
+        own = []
+        node.create_subscription(PoseStamped, "/camera/pose", own.append, output_qos())
+        assert spin_until(node, lambda: "mapper" in diag, 120), log.read_text()
+        k = 0
+
+        def feed(until, foreign: bool, timeout: float) -> bool:
+            nonlocal k
+            end = time.monotonic() + timeout
+            while time.monotonic() < end and not until():
+                f, stamp = frames[k % len(frames)], 10**9 + k * 10**9 // 6
+                pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, stamp,
+                                                                          "camera"))
+                pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", stamp,
+                                                                  "camera"))
+                pubs["/camera/depth/image_raw"].publish(image_msg(
+                    np.round(f.depth * 1000).astype(np.uint16), "16UC1", stamp, "camera"))
+                if foreign:  # a SLAM's pose of the frame, stamped as it computed it
+                    pubs["/camera/pose"].publish(pose_msg(f.pose, stamp + 3_000_000, "map"))
+                k += 1
+                spin_until(node, lambda: False, 1 / 6)
+            return until()
+
+        # The mapper's own poses come back to it: not reported.
+        n = len(frames) // 2
+        assert feed(lambda: len(own) >= n, False, 60), log.read_text()[-3000:]
+        spin_until(node, lambda: False, 1.5)  # a diagnostics tick after the last echo
+        assert "problem.pose_ignored" not in diag["mapper"], diag["mapper"]
+        assert ignored not in log.read_text()
+        # Another publisher's poses: said, once per log_throttle_s, and counted.
+        assert feed(lambda: ignored in log.read_text()
+                    and int(diag["mapper"].get("problem.pose_ignored", 0)) > 0, True, 60), \
+            log.read_text()[-3000:]
+        assert proc.poll() is None, log.read_text()
+    finally:
+        code = stop(proc)
+    text = log.read_text()
+    assert "mapper_node.pose_source:=topic" in text, text[-3000:]
+    assert code == 0, text[-2000:]
+
+
 def _compressed_frame(stamp_ns: int, w: int = 96, h: int = 72, broken: bool = False):
     """Colour as image_transport's compressed (JPEG) and depth as its compressedDepth (a
     12-byte header, then a PNG of millimetres), built here with cv2."""

@@ -88,6 +88,7 @@ def make_node():
             self.poses = PoseStage(self.node_cfg, self.cfg.odometry, self.topics, self.health,
                                    tf_available=TFMessage is not None)
             self.pub_pose = None
+            self._own_poses: dict[int, None] = {}  # stamps of the poses we published lately
             self._segment = 0
             self.exit_code = 0
             self.spec: EmbeddingSpec | None = None
@@ -200,6 +201,9 @@ def make_node():
                     if self.pub_pose is None:
                         self.pub_pose = self.create_publisher(PoseStamped, self.topics.pose,
                                                               view_qos(10))
+                    self._own_poses[int(stamp)] = None  # before it can come back (on_pose)
+                    if len(self._own_poses) > 256:
+                        del self._own_poses[next(iter(self._own_poses))]
                     self.pub_pose.publish(pose_msg(T, stamp, self.topics.world_frame))
                 self._check_segment()
                 self._offer("pose", stamp, T)
@@ -233,7 +237,20 @@ def make_node():
 
         def on_pose(self, msg) -> None:
             if self.pub_pose is not None:
-                return  # our own poses (tf/odometry) echoed back
+                # Our own poses (tf/odometry) come back here; another publisher's are
+                # ignored too, but said (a SLAM started after pose_source auto had chosen
+                # odometry was ignored in silence, its poses mixed with ours on the topic).
+                if header_ns(msg) not in self._own_poses:
+                    how = ("pose_source auto chose it: no pose came within "
+                           "pose_auto_wait_s of the first frame"
+                           if self.node_cfg.pose_source == "auto" else "pose_source")
+                    self.health.problem(
+                        "pose_ignored", f"poses from another publisher on {self.topics.pose} "
+                        f"are ignored: this mapper takes its poses from {self.poses.mode} "
+                        f"({how}) and publishes them on that topic; to use that "
+                        "publisher's poses, restart the mapper with -p "
+                        "mapper_node.pose_source:=topic (or start it before the camera)")
+                return
             pose = self._convert("pose", msgconv.pose_to_matrix, msg, self.topics.pose)
             if pose is None:
                 return
