@@ -25,6 +25,8 @@ RNG = np.random.default_rng(0)
 CASES = {
     "rgb8": RNG.integers(0, 256, (5, 7, 3)).astype(np.uint8),
     "bgr8": RNG.integers(0, 256, (5, 7, 3)).astype(np.uint8),
+    "rgba8": RNG.integers(0, 256, (5, 7, 4)).astype(np.uint8),
+    "bgra8": RNG.integers(0, 256, (5, 7, 4)).astype(np.uint8),
     "mono8": RNG.integers(0, 256, (5, 7)).astype(np.uint8),
     "mono16": RNG.integers(0, 65536, (5, 7)).astype(np.uint16),
     "16UC1": RNG.integers(0, 65536, (5, 7)).astype(np.uint16),
@@ -60,6 +62,21 @@ def test_bgr_becomes_rgb():
     np.testing.assert_array_equal(msgconv.rgb_from_image(image(bgr, "rgb8")), bgr)
 
 
+@pytest.mark.parametrize("pad", [0, 4])
+def test_colour_with_alpha_loses_it(pad):
+    """rgba8 and bgra8 (the colour of the ZED and Azure Kinect drivers) were refused ("must
+    be rgb8 or bgr8") where the same image compressed as a BGRA PNG was taken: the alpha is
+    left out, the channels put in RGB order."""
+    bgra = CASES["bgra8"]
+    rgb = msgconv.rgb_from_image(image(bgra, "bgra8", pad), "/c")
+    assert rgb.shape == bgra.shape[:2] + (3,) and rgb.flags.c_contiguous
+    np.testing.assert_array_equal(rgb, bgra[:, :, 2::-1])
+    rgba = CASES["rgba8"]
+    rgb = msgconv.rgb_from_image(image(rgba, "rgba8", pad), "/c")
+    assert rgb.shape == rgba.shape[:2] + (3,) and rgb.flags.c_contiguous
+    np.testing.assert_array_equal(rgb, rgba[:, :, :3])
+
+
 def test_depth_units():
     mm = np.array([[0, 1000, 2500]], np.uint16)
     np.testing.assert_allclose(msgconv.depth_from_image(image(mm, "16UC1")), [[0, 1.0, 2.5]])
@@ -86,7 +103,7 @@ def test_image_errors_name_topic(msg, match):
 
 
 def test_wrong_encoding_for_role():
-    with pytest.raises(MessageError, match="rgb8 or bgr8"):
+    with pytest.raises(MessageError, match="rgb8, bgr8, rgba8 or bgra8, got 'mono8'"):
         msgconv.rgb_from_image(image(CASES["mono8"], "mono8"), "/c")
     with pytest.raises(MessageError, match="16UC1 .mm. or 32FC1"):
         msgconv.depth_from_image(image(CASES["mono8"], "mono8"), "/d")

@@ -442,21 +442,21 @@ def test_a_refused_stream_is_reported_as_refused_not_as_absent():
     assert lines[-1].startswith("waiting for color: nothing arrives there")
 
 
-def _rgba_msg(stamp_ns: int, w: int = 96, h: int = 72):
+def _yuv_msg(stamp_ns: int, w: int = 96, h: int = 72):
     from sensor_msgs.msg import Image
 
     msg = Image()
     msg.header.stamp.sec, msg.header.stamp.nanosec = msgconv.ns_to_stamp(stamp_ns)
     msg.header.frame_id = "camera"
-    msg.height, msg.width, msg.encoding, msg.step = h, w, "rgba8", 4 * w
-    msg.data = bytes(4 * w * h)
+    msg.height, msg.width, msg.encoding, msg.step = h, w, "yuv422", 2 * w
+    msg.data = bytes(2 * w * h)
     return msg
 
 
 @pytest.mark.parametrize("node_name", ["embedding", "mapper"])
 def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_node,
                                                                 tmp_path):
-    """Colour in an encoding the nodes refuse (rgba8), depth and pose valid: both nodes
+    """Colour in an encoding the nodes refuse (yuv422), depth and pose valid: both nodes
     count it as problem `bad_color` (the mapper said `bad_colour`) and say colour arrives
     but is refused, not "waiting for color: nothing arrives there"."""
     from geometry_msgs.msg import PoseStamped
@@ -475,14 +475,14 @@ def test_refused_colour_is_bad_color_and_not_reported_as_absent(node_name, ros_n
             ("/camera/pose", PoseStamped))}
         assert spin_until(node, lambda: node_name in diag, 120), log.read_text()
         refused = "waiting for color: it arrives but is refused: /camera/color/image_raw: " \
-                  "colour image must be rgb8 or bgr8, got 'rgba8'"
+                  "colour image must be rgb8, bgr8, rgba8 or bgra8, got 'yuv422'"
         stamp = 10**9
         end = time.monotonic() + 60
         while time.monotonic() < end and not (
                 refused in log.read_text()
                 and int(diag[node_name].get("problem.bad_color", 0)) > 0):
             stamp += 10**9 // 20
-            pubs["/camera/color/image_raw"].publish(_rgba_msg(stamp))
+            pubs["/camera/color/image_raw"].publish(_yuv_msg(stamp))
             pubs["/camera/depth/image_raw"].publish(
                 image_msg(np.full((72, 96), 1500, np.uint16), "16UC1", stamp, "camera"))
             pubs["/camera/pose"].publish(pose_msg(np.eye(4), stamp, "world"))

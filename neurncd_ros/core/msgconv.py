@@ -29,13 +29,17 @@ class MessageError(ValueError):
 
 _FIXED = {
     "rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "mono8": (np.uint8, 1),
+    "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4),
     "8UC1": (np.uint8, 1), "8UC3": (np.uint8, 3),
     "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1),
 }
 _FLOAT_RE = re.compile(r"^32FC(\d+)$")
 
-SUPPORTED_ENCODINGS = ("rgb8", "bgr8", "mono8", "8UC1", "8UC3", "mono16", "16UC1",
-                       "32FC<S>")
+SUPPORTED_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8", "mono8", "8UC1", "8UC3", "mono16",
+                       "16UC1", "32FC<S>")
+COLOUR_ENCODINGS = ("rgb8", "bgr8", "rgba8", "bgra8")
+"""What a colour image may come in: rgba8 and bgra8 (the ZED and Azure Kinect drivers' colour)
+lose their alpha, as a compressed BGRA image does."""
 
 
 def _where(topic: str) -> str:
@@ -184,8 +188,8 @@ def decode_compressed(msg: Any, topic: str = "") -> tuple[np.ndarray, str]:
 
 
 def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
-    """Colour image message (rgb8 or bgr8, or a compressed colour image) to (H, W, 3)
-    uint8 RGB."""
+    """Colour image message (rgb8, bgr8, rgba8 or bgra8, the alpha left out, or a
+    compressed colour image) to (H, W, 3) uint8 RGB."""
     if is_compressed(msg):
         arr, enc = decode_compressed(msg, topic)
         if enc not in ("bgr8", "rgb8"):
@@ -193,11 +197,14 @@ def rgb_from_image(msg: Any, topic: str = "") -> np.ndarray:
                                f"compressed image (format {msg.format!r}) decodes to {enc}")
     else:
         enc = msg.encoding
-        if enc not in ("rgb8", "bgr8"):
-            raise MessageError(f"{_where(topic)}colour image must be rgb8 or bgr8, got "
-                               f"{enc!r}")
+        if enc not in COLOUR_ENCODINGS:
+            raise MessageError(f"{_where(topic)}colour image must be "
+                               f"{', '.join(COLOUR_ENCODINGS[:-1])} or {COLOUR_ENCODINGS[-1]}, "
+                               f"got {enc!r}")
         arr = image_to_array(msg, topic)
-    return arr[:, :, ::-1].copy() if enc == "bgr8" else arr
+    if enc in ("bgr8", "bgra8"):
+        return np.ascontiguousarray(arr[:, :, 2::-1])
+    return np.ascontiguousarray(arr[:, :, :3]) if enc == "rgba8" else arr
 
 
 def depth_from_image(msg: Any, topic: str = "") -> np.ndarray:
