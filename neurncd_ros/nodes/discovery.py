@@ -93,6 +93,8 @@ def make_node():
             stamp = header_ns(msg)
             if stream == "depth":
                 self.frame_ids[stamp] = msg.header.frame_id or self.topics.camera_frame
+                if len(self.frame_ids) > 256:  # views whose other parts never came
+                    self.frame_ids.pop(min(list(self.frame_ids)), None)
             if self.stage.offer(stream, stamp, value):
                 self.worker.notify()
 
@@ -113,8 +115,9 @@ def make_node():
                 self._save_state(force=False)
                 return False
             frame_id = self.frame_ids.pop(view.stamp_ns, self.topics.camera_frame)
-            for old in [s for s in self.frame_ids if s < view.stamp_ns]:
-                del self.frame_ids[old]
+            # (a copy of the keys: the callbacks add to frame_ids meanwhile)
+            for old in [s for s in list(self.frame_ids) if s < view.stamp_ns]:
+                self.frame_ids.pop(old, None)
             try:
                 with self._labelling:
                     rec = self.stage.label(view)
