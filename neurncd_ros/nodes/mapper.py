@@ -229,10 +229,10 @@ def make_node():
                 self._queue(lambda: self._image("color", msg, value))
 
         def on_depth(self, msg) -> None:
-            if msg.header.frame_id:
-                self.frame_id = msg.header.frame_id
             value = self._convert("depth", msgconv.depth_from_image, msg, self.topics.depth)
             if value is not None:
+                if msg.header.frame_id:  # a refused message's frame_id is not taken
+                    self.frame_id = msg.header.frame_id
                 self._queue(lambda: self._image("depth", msg, value))
 
         def on_pose(self, msg) -> None:
