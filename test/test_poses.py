@@ -141,6 +141,28 @@ def test_odometry_losses_are_warnings_and_such_frames_get_no_pose(walk):
     assert st.health.counts["odometry_lost"] == 4
 
 
+def test_a_new_room_after_a_reset_starts_the_odometry_again(walk):
+    """The mapper's ~/reset for a new room: the odometry forgets the old room's keyframes,
+    so the new room's first frame is its origin and none of its frames is lost (they were
+    tracked against the old room: lost, the first 10 frames, until a new segment)."""
+    logs = []
+    st = _stage("odometry", log=lambda level, text: logs.append((level, text)))
+    assert len(_feed_images(st, walk[:10])) == 10
+    other = list(synth.generate(2001, 12, synth.SynthConfig(width=160, height=120)))
+    room = [dataclasses.replace(o, stamp_ns=walk[-1].stamp_ns + (k + 1) * 33_000_000)
+            for k, o in enumerate(other)]
+    st.reset_odometry()
+    poses = dict(_feed_images(st, room))
+    assert sorted(poses) == [f.stamp_ns for f in room], logs
+    np.testing.assert_allclose(poses[room[0].stamp_ns], np.eye(4), atol=1e-9)
+    first = room[0].pose
+    dt, dr = pose_distance(invert_pose(first) @ room[-1].pose, poses[room[-1].stamp_ns])
+    assert dt < 0.03 and dr < 2.0, (dt, dr)
+    assert st.odometry.segment == 0 and "odometry_lost" not in st.health.counts
+    assert st.odometry.frames == 22  # the exit line's counts go on
+    assert st.summary().startswith("pose source odometry: 22 frames tracked")
+
+
 def test_tf_poses_are_looked_up_at_each_frame_and_interpolated(walk):
     st = _stage("tf")
     cam = {f.stamp_ns: f.pose for f in walk}
@@ -291,3 +313,80 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
         rclpy.shutdown()
         codes = [stop(p, timeout=30) for p in procs.values()]
     assert codes == [0, 0, 0]
+
+
+def test_the_reset_services_start_a_new_room(tmp_path):
+    """/mapper/reset and /discovery/reset over DDS, as the README has a user call them
+    before a new room: the mapper's odometry starts again at the new room's first frame
+    (it lost that room's first 10 frames against the old room's keyframes), and both
+    say what they forgot."""
+    import rosutil
+    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+
+    domain = rosutil.domain(12)
+    apply_ros_env(domain)
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_srvs.srv import Trigger
+
+    from neurncd_ros.core.msgconv import pose_to_matrix
+    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+
+    size = synth.SynthConfig(width=160, height=120, fps=10.0)
+    old_room = list(synth.generate(1002, 6, size))
+    new_room = [dataclasses.replace(f, stamp_ns=f.stamp_ns + 5_000_000_000)
+                for f in synth.generate(2001, 6, size)]
+    args = ["--ros-args", "-p", "mapper_node.pose_source:=odometry",
+            "-p", "mapper_node.odometry_frames:=all"]
+    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
+                      tmp_path / f"{n}.log") for n in ("mapper", "discovery")}
+    rclpy.init()
+    node = rclpy.create_node("new_room_camera")
+    poses = {}
+    try:
+        node.create_subscription(PoseStamped, "/camera/pose", lambda m: poses.setdefault(
+            m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, pose_to_matrix(m)),
+            output_qos(50))
+        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
+            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
+            ("/camera/color/camera_info", CameraInfo))}
+        assert spin_until(node, lambda: all(p.get_subscription_count() >= 1
+                                            for p in pubs.values()), 120)
+
+        def play(frames) -> None:
+            for f in frames:  # each frame until its pose comes (best effort may lose one)
+                for _ in range(20):
+                    pubs["/camera/color/camera_info"].publish(
+                        camera_info_msg(f.intrinsics, f.stamp_ns, "camera"))
+                    pubs["/camera/color/image_raw"].publish(
+                        image_msg(f.rgb, "rgb8", f.stamp_ns, "camera"))
+                    pubs["/camera/depth/image_raw"].publish(image_msg(
+                        np.round(f.depth * 1000).astype(np.uint16), "16UC1", f.stamp_ns,
+                        "camera"))
+                    if spin_until(node, lambda: f.stamp_ns in poses, 3.0):
+                        break
+
+        def call(service: str) -> str:
+            client = node.create_client(Trigger, service)
+            assert client.wait_for_service(timeout_sec=60), service
+            future = client.call_async(Trigger.Request())
+            assert spin_until(node, future.done, 60), service
+            assert future.result().success
+            return future.result().message
+
+        play(old_room)
+        assert {f.stamp_ns for f in old_room} <= set(poses)
+        assert "odometry starts again" in call("/mapper/reset")
+        assert "novel ids start from 100 again" in call("/discovery/reset")
+        play(new_room)
+        mapper_log = (tmp_path / "mapper.log").read_text()
+        assert {f.stamp_ns for f in new_room} <= set(poses), mapper_log[-3000:]
+        np.testing.assert_allclose(poses[new_room[0].stamp_ns], np.eye(4), atol=1e-6)
+        assert "odometry lost" not in mapper_log, mapper_log[-3000:]
+        assert all(p.poll() is None for p in procs.values())
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        codes = [stop(p, timeout=30) for p in procs.values()]
+    assert codes == [0, 0]

@@ -386,7 +386,13 @@ def make_node():
         def on_reset(self, request, response):
             with self._intake_lock:  # not in the middle of admitting a keyframe
                 self.stage.reset_map()
-            response.success, response.message = True, "map reset"
+                self.poses.reset_odometry()  # a new room: its first frame is the origin
+                self._segment = 0
+            response.success = True
+            response.message = "map reset: the field and its keyframes forgotten" + (
+                "; the odometry starts again at the next frame"
+                if self.poses.odometry is not None else "")
+            self.get_logger().info(response.message)
             return response
 
         def close(self) -> None:

@@ -86,6 +86,21 @@ class PoseStage:
         """The node should publish the poses it gets from here on ``topics.pose``."""
         return self.mode in ("tf", "odometry")
 
+    def reset_odometry(self) -> None:
+        """A new room (the mapper's ~/reset): the odometry forgets its keyframes and the
+        frames held for it, and the next frame starts it again at the origin (it tracked
+        the new room against the old room's keyframes and lost its first 10 frames, until
+        a new segment). Its counts for the exit line are kept."""
+        odo = self.odometry
+        if odo is not None:
+            frames, counts = odo.frames, dict(odo.counts)
+            odo.reset()
+            odo.frames, odo.counts = frames, counts
+        self._held.clear()
+        self._wanted.clear()
+        self._early.clear()
+        self._last_tracked = None
+
     def summary(self) -> str:
         """One line for the node's exit log: the source and, with odometry, what it did."""
         odo = self.odometry
