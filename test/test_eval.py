@@ -153,6 +153,10 @@ def test_a_target_met_against_an_undertrained_baseline_carries_a_caveat():
     sn = targets.check(agg, bags)[3]
     assert sn["met"] is True and "only 62 % of" in sn["caveat"] and "59 iterations" in sn["caveat"]
     assert "Caveat: the Semantic-NeRF fields" in targets.lines([sn])[0]
+    assert "a larger semnerf.training_factor" in sn["caveat"]
+    # At the default factor (25) it said "--set semnerf.training_factor=25": no change.
+    bags[0]["semnerf"]["semnerf_1pct"]["training_factor"] = 25.0
+    assert "a semnerf.training_factor above its 25" in targets.check(agg, bags)[3]["caveat"]
     bags[0]["semnerf"]["semnerf_1pct"]["label_fit"] = 0.98  # a field that holds its labels
     assert targets.check(agg, bags)[3]["caveat"] == ""
 

@@ -118,10 +118,14 @@ def check(agg: dict, bags: list[dict]) -> list[dict[str, Any]]:
                     f"labels and renders the known classes better than the engine's labels "
                     f"from the backbone, which had no ground truth")
     elif t["met"] and fit and min(fit) < FIT_CAVEAT:
+        factor = max((i["training_factor"] for i in infos
+                      if i.get("training_factor") is not None), default=None)
+        more = (f"a semnerf.training_factor above its {factor:g}" if factor is not None
+                else "a larger semnerf.training_factor")
         t["caveat"] = (f"the Semantic-NeRF fields reproduce only {fit_s} of their own labels "
                        f"after {sn_it} iterations: they are short of training, so the margin "
                        f"measures the training budget more than the labels (train them longer "
-                       f"with --set semnerf.training_factor=25)")
+                       f"with {more}, or give them longer bags)")
     out.append(t)
     return out
 
