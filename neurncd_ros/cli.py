@@ -262,8 +262,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     known = [s.stem for s in scripts if not s.name.startswith("_")]
     scripts = [s for s in scripts if not s.name.startswith("_") and
                (not args.names or s.stem in args.names)]
-    if not scripts:
-        print(f"neurncd bench: error: no benchmark matched {args.names}; there are "
+    unknown = [n for n in args.names if n not in known]
+    if unknown:  # a mistyped name among others was skipped in silence
+        print(f"neurncd bench: error: no benchmark matched {unknown}; there are "
               f"{', '.join(known)}", file=sys.stderr)
         return 2
     extra = ["--quick"] if args.quick else []

@@ -495,6 +495,9 @@ def test_wrong_arguments_get_the_commands_usage_and_a_hint(real_data_dir, tmp_pa
     r = neurncd("bench", "nosuch", "--quick")
     assert r.returncode == 2 and "no benchmark matched ['nosuch']; there are" in r.stderr
     assert "ncd" in r.stderr.split("there are", 1)[1]
+    r = neurncd("bench", "synth", "odometri", "--quick")  # a typo beside a name: nothing runs
+    assert r.returncode == 2 and "no benchmark matched ['odometri']" in r.stderr, r.stderr
+    assert "== bench/" not in r.stdout
     # graph has no quick mode: named with --quick it is refused before anything runs (in
     # `neurncd bench --quick` it is left out, and the summary says so).
     r = neurncd("bench", "graph", "--quick")
