@@ -139,3 +139,33 @@ def test_reset_forgets_the_discovered_classes_as_a_new_start_would(views):
         np.testing.assert_array_equal(a.labels, b.labels)
         assert a.classes == b.classes
     assert stage.health.counts["resets"] == 1
+
+
+def test_a_reset_during_a_save_is_saved_next(views, tmp_path, monkeypatch):
+    """The node's ~/reset runs on its service thread, the idle save on the labelling
+    thread: a reset that came while the old room was being written was marked saved, so
+    a node killed before the next view restarted with the old room's novel ids."""
+    from neurncd_ros.core.discovery import state
+
+    cfg, vs = views
+    now = [0.0]
+    path = tmp_path / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path), save_period_s=30)
+    stage = DiscoveryStage(cfg, node_cfg, clock=lambda: now[0])
+    for v in vs[:3]:
+        stage.label_view(v)
+    assert stage.discoverer.novel_ids
+    write = state.save_state
+
+    def write_then_reset(*args, **kwargs):
+        write(*args, **kwargs)
+        stage.reset()  # the service call, while the worker is still in save_state
+    monkeypatch.setattr(state, "save_state", write_then_reset)
+    now[0] = 31.0
+    assert stage.save_state(force=False)
+    monkeypatch.setattr(state, "save_state", write)
+    now[0] = 62.0
+    assert stage.save_state(force=False), "the reset was never saved"
+    fresh = DiscoveryStage(cfg, node_cfg)
+    fresh.set_spec(stage.spec)
+    assert fresh.state_refused is None and not fresh.discoverer.novel_ids

@@ -190,8 +190,12 @@ class DiscoveryStage:
             return False
         from ..discovery.state import save_state
 
-        save_state(path, {"discovery": self.discoverer.state()})
-        self._last_save, self._unsaved = now, False
+        saved = self.discoverer
+        save_state(path, {"discovery": saved.state()})
+        self._last_save = now
+        # A reset (the node's service thread) during the write leaves it unsaved: the
+        # file holds the old room until the next due save writes the new start.
+        self._unsaved = self.discoverer is not saved
         self.health.count("state_saves")
         return True
 
