@@ -330,8 +330,11 @@ def test_the_reset_services_start_a_new_room(tmp_path):
     from sensor_msgs.msg import CameraInfo, Image
     from std_srvs.srv import Trigger
 
-    from neurncd_ros.core.msgconv import pose_to_matrix
-    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+    from std_msgs.msg import String
+
+    from neurncd_ros.core.msgconv import class_table_from_text, pose_to_matrix
+    from neurncd_ros.nodes.common import (camera_info_msg, image_msg, latched_qos,
+                                          output_qos, sensor_qos)
 
     size = synth.SynthConfig(width=160, height=120, fps=10.0)
     old_room = list(synth.generate(1002, 6, size))
@@ -379,6 +382,12 @@ def test_the_reset_services_start_a_new_room(tmp_path):
         assert {f.stamp_ns for f in old_room} <= set(poses)
         assert "odometry starts again" in call("/mapper/reset")
         assert "novel ids start from 100 again" in call("/discovery/reset")
+        # The latched class table is emptied (it named the old room's ids to late
+        # subscribers until the next label); a subscriber after the reset gets that.
+        tables = []
+        node.create_subscription(String, "/neurncd/classes", lambda m: tables.append(
+            class_table_from_text(m.data)[2]), latched_qos())
+        assert spin_until(node, lambda: tables, 30) and tables[-1] == {}
         play(new_room)
         mapper_log = (tmp_path / "mapper.log").read_text()
         assert {f.stamp_ns for f in new_room} <= set(poses), mapper_log[-3000:]

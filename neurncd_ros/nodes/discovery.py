@@ -140,6 +140,10 @@ def make_node():
             mapper's ~/reset clears its map)."""
             with self._labelling:
                 self.stage.reset()
+                # The latched table named the old room's novel ids to every late
+                # subscriber until the next view: an empty one says they are gone.
+                self.pub_classes.publish(String(data=msgconv.class_table_text(
+                    self.get_clock().now().nanoseconds, self.topics.camera_frame, {})))
             response.success = True
             response.message = "discovery reset: novel ids start from 100 again"
             self.get_logger().info(response.message)
