@@ -278,6 +278,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
                   f"--quick mode; run {'it' if one else 'them'} without --quick",
                   file=sys.stderr)
             return 2
+        if skipped:
+            print(f"neurncd bench --quick: leaving out {', '.join(skipped)} (no quick mode; "
+                  "run them by name without --quick)", flush=True)
     failed = []
     for s in scripts:
         print(f"== bench/{s.name}", flush=True)

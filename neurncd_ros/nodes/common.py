@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import sys
 import time
@@ -173,6 +174,10 @@ def run_node(factory: Callable[[], Any], name: str, description: str,
         print(f"{name}: warning: {warning}", file=sys.stderr)
     import cv2
     cv2.setNumThreads(1)  # the nodes share the cores; torch threads are set per node
+    # The odometry's own per-frame lines (Python logging, unthrottled, on stderr) repeated
+    # every loss the pose stage already reports, throttled, through the node's logger and
+    # /diagnostics: a node keeps only its errors.
+    logging.getLogger("neurncd_ros.core.odometry").setLevel(logging.ERROR)
     import rclpy
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
