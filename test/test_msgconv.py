@@ -148,6 +148,11 @@ def test_pose_errors():
         msgconv.pose_to_matrix(pose_msg([np.nan, 0, 0], [0, 0, 0, 1]), "/camera/pose")
     with pytest.raises(MessageError, match="norm"):
         msgconv.pose_to_matrix(pose_msg([0, 0, 0], [0, 0, 0, 0]), "/camera/pose")
+    with pytest.raises(MessageError, match="norm 1.010000"):
+        msgconv.pose_to_matrix(pose_msg([0, 0, 0], [0, 0, 0, 1.01]), "/camera/pose")
+    # what tf2 takes is taken, normalised (a driver's float32 quaternion of norm 1.002)
+    np.testing.assert_allclose(msgconv.pose_to_matrix(pose_msg([0, 0, 0], [0, 0, 0, 1.002])),
+                               np.eye(4), atol=1e-12)
     bad = np.eye(4)
     bad[0, 3] = np.inf
     with pytest.raises(MessageError, match="/p: pose has non-finite"):
