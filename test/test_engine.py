@@ -100,6 +100,22 @@ def test_a_partner_refused_before_pairing_is_named_as_the_cause():
     assert "nothing came on color" in lines[-1]
 
 
+def test_a_refusal_is_blamed_only_for_the_frame_it_was_the_partner_of():
+    """A pose refused (its quaternion) 5 s of stamps before: a later frame given up for
+    another reason (its pose stamped far from it) was said to lose its pose to that
+    refusal. A refusal with a stamp is blamed only within REFUSED_NEAR_NS of the frame."""
+    clock, lines = Clock(), []
+    h = H.Health("x", lambda level, text: lines.append(text), throttle_s=0.0, clock=clock)
+    report = H.sync_reporter(h)
+    h.refuse("pose", "bad_pose", "pose skipped", "norm 2.000000", stamp_ns=1_000_000_000)
+    report("color", "unpaired", 1_000_000_000 + H.REFUSED_NEAR_NS // 2, "pose")
+    assert "pose arrives but is refused: norm 2.000000" in lines[-1]
+    report("color", "unpaired", 6_000_000_000, "pose")  # another frame, another cause
+    assert "refused" not in lines[-1] and "nothing came on pose" in lines[-1]
+    assert h.refused() == {"pose": "norm 2.000000"}  # still what the stream does lately
+    assert h.refused(6_000_000_000, H.REFUSED_NEAR_NS) == {}
+
+
 def test_a_frame_names_a_camera_info_of_another_size():
     from neurncd_ros.core.camera import Intrinsics
     from neurncd_ros.core.frame import Frame

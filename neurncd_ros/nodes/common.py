@@ -401,6 +401,15 @@ def header_ns(msg: Any) -> int:
     return msgconv.stamp_to_ns(msg.header.stamp)
 
 
+def stamp_of(msg: Any) -> int | None:
+    """:func:`header_ns`, or None for a message without a usable header (a refused
+    message is remembered with its stamp where it has one)."""
+    try:
+        return header_ns(msg)
+    except (AttributeError, TypeError, ValueError):
+        return None
+
+
 def diagnostics_msg(node: Any, healths: list) -> Any:
     """A diagnostic_msgs/DiagnosticArray with one status per stage health."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue

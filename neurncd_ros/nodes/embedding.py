@@ -11,7 +11,7 @@ from __future__ import annotations
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (diagnostics_msg, header_ns, image_msg, input_image_type, latched_qos,
-                     output_qos, ros_logger, run_node, sensor_qos, wall_timer,
+                     output_qos, ros_logger, run_node, sensor_qos, stamp_of, wall_timer,
                      InputWatch)
 from .parameters import ReadOnlyConfig, declare_config
 
@@ -80,7 +80,7 @@ def make_node():
                 rgb = msgconv.rgb_from_image(msg, self.topics.color)
             except ValueError as err:
                 self.health.refuse("color", "bad_color", f"colour image skipped: {err}",
-                                   str(err))
+                                   str(err), stamp_of(msg))
                 return
             if self.stage.offer("color", header_ns(msg), rgb):
                 self.worker.notify()
@@ -90,7 +90,7 @@ def make_node():
                 depth = msgconv.depth_from_image(msg, self.topics.depth)
             except ValueError as err:
                 self.health.refuse("depth", "bad_depth", f"depth image skipped: {err}",
-                                   str(err))
+                                   str(err), stamp_of(msg))
                 return
             if msg.header.frame_id:
                 self.frame_id = msg.header.frame_id

@@ -30,8 +30,8 @@ import threading
 
 # Nothing heavy at the top: main() installs the signal handlers before torch loads.
 from .common import (camera_info_msg, diagnostics_msg, header_ns, image_msg, input_image_type,
-                     latched_qos, pose_msg, ros_logger, run_node, sensor_qos, view_qos,
-                     wall_timer, InputWatch)
+                     latched_qos, pose_msg, ros_logger, run_node, sensor_qos, stamp_of,
+                     view_qos, wall_timer, InputWatch)
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Fits the Embedding-NeRF incrementally on RGB-D keyframes and publishes "
@@ -182,7 +182,7 @@ def make_node():
                 return fn(msg, topic)
             except ValueError as err:
                 self.health.refuse(stream, f"bad_{stream}", f"{stream} message skipped: {err}",
-                                   str(err))
+                                   str(err), stamp_of(msg))
                 return None
 
         def _offer(self, stream: str, stamp: int, value) -> None:
@@ -300,7 +300,7 @@ def make_node():
             if self.spec is None:
                 reason = f"its spec has not arrived on {self.topics.embedding_spec} yet"
                 self.health.refuse("embedding", "no_spec", f"embedding skipped: {reason}",
-                                   reason)
+                                   reason, stamp_of(msg))
                 return
             arr = self._convert("embedding", msgconv.image_to_array, msg,
                                 self.topics.embedding)
@@ -311,7 +311,7 @@ def make_node():
                 self.spec.check(arr, self.topics.embedding)
             except ValueError as err:
                 self.health.refuse("embedding", "bad_embedding", f"embedding skipped: {err}",
-                                   str(err))
+                                   str(err), stamp_of(msg))
                 return
             stamp = header_ns(msg)
             record = EmbeddingRecord(stamp, arr, self.spec)

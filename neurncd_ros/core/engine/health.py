@@ -52,6 +52,8 @@ class Health:
         self.detail = ""
         self.error: str | None = None
         self._refused: dict[str, tuple[float, str]] = {}  # stream -> (when, reason)
+        # stream -> stamps of its messages refused lately (those that had one)
+        self._refused_stamps: dict[str, collections.deque] = {}
 
     # ------------------------------------------------------------ counting
     def count(self, key: str, n: int = 1) -> None:
@@ -107,20 +109,34 @@ class Health:
         suffix = f" ({more} more of this kind since the last report)" if more else ""
         self._log(level, f"{message}{suffix}")
 
-    def refuse(self, stream: str, kind: str, message: str, reason: str) -> None:
+    def refuse(self, stream: str, kind: str, message: str, reason: str,
+               stamp_ns: int | None = None) -> None:
         """A message of input ``stream`` arrived and was refused for ``reason`` (a colour
         image in an encoding the node cannot read, an embedding before its spec): a
         problem of ``kind`` logged as ``message``, and remembered for ``window_s`` so that
-        :func:`report_starved` names the stream as refused, not as one that never comes."""
+        :func:`report_starved` names the stream as refused, not as one that never comes.
+        ``stamp_ns``: the refused message's stamp, so that a frame given up unpaired
+        blames only a refusal of its own partner (:meth:`refused` ``near_ns``)."""
         with self._lock:
             self._refused[stream] = (self._clock(), reason)
+            if stamp_ns is not None:
+                self._refused_stamps.setdefault(stream, collections.deque(maxlen=64)).append(
+                    int(stamp_ns))
         self.problem(kind, message)
 
-    def refused(self) -> dict[str, str]:
-        """The input streams refused in the last ``window_s`` seconds, with the reason."""
+    def refused(self, near_ns: int | None = None, within_ns: int = 0) -> dict[str, str]:
+        """The input streams refused in the last ``window_s`` seconds, with the reason;
+        with ``near_ns``, of the streams whose refused messages had stamps, only those
+        with one within ``within_ns`` of it (a pose refused for its quaternion was blamed
+        for a later frame given up for another reason)."""
         now = self._clock()
         with self._lock:
-            return {s: r for s, (t, r) in self._refused.items() if now - t <= self.window_s}
+            out = {s: r for s, (t, r) in self._refused.items() if now - t <= self.window_s}
+            if near_ns is not None:
+                out = {s: r for s, r in out.items() if s not in self._refused_stamps
+                       or any(abs(st - near_ns) <= within_ns
+                              for st in self._refused_stamps[s])}
+            return out
 
     def note(self, kind: str, message: str) -> None:
         """An event worth a log line that is not a problem (a decision the stage took, such
@@ -172,6 +188,11 @@ class Health:
         return {"level": level, "message": message, "values": values}
 
 
+REFUSED_NEAR_NS = 100_000_000
+"""A frame given up unpaired blames a refused message of its partner stream stamped this
+near it (a refusal of another frame's partner is not why)."""
+
+
 def sync_reporter(health, names: dict[str, str] | None = None):
     """An ``on_anomaly`` callback for :class:`..sync.StampSync` that reports to ``health``."""
     texts = {"duplicate": "a second message with stamp {s} on {n}: dropped",
@@ -197,7 +218,7 @@ def sync_reporter(health, names: dict[str, str] | None = None):
     def report(stream: str, reason: str, stamp_ns: int, detail: str = "") -> None:
         name = (names or {}).get(stream, stream)
         text = texts[reason].format(s=stamp_ns, n=name, d=detail)
-        refused = health.refused() if reason == "unpaired" else {}
+        refused = health.refused(stamp_ns, REFUSED_NEAR_NS) if reason == "unpaired" else {}
         why = [f"{s} arrives but is refused: {r}" for s, r in refused.items()
                if s in detail.split(", ")]
         if why:
