@@ -129,6 +129,32 @@ def test_a_frame_names_a_camera_info_of_another_size():
     Frame(1, rgb, depth, np.eye(4), Intrinsics.from_hfov(64, 48, 90.0)).validate()
 
 
+def test_a_frame_says_what_is_wrong_with_its_arrays():
+    """Arrays as a user's own data has them wrong: each a ValueError saying what to do,
+    not an AttributeError from inside, nor a stamp in seconds taken as nanoseconds (30 s
+    of stream in 30 ns: the rate gates let only the first frame through)."""
+    from neurncd_ros.core.camera import Intrinsics
+    from neurncd_ros.core.frame import Frame
+    rgb, depth = np.zeros((48, 64, 3), np.uint8), np.ones((48, 64), np.float32)
+    intr = Intrinsics.from_hfov(64, 48, 90.0)
+    ok = Frame(1, rgb, depth, np.eye(4), intr)
+    for change, match in (
+            ({"depth": np.full((48, 64), 1500, np.uint16)},
+             r"float32, got \(48, 64\) uint16 \(millimetres.*/ 1000\)"),
+            ({"depth": -depth}, r"^depth must be >= 0 metres \(0 = no measurement\), min is -1"),
+            ({"rgb": rgb.tolist()}, "^rgb must be a numpy array, got list$"),
+            ({"semantic": [[0]]}, "^semantic must be a numpy array, got list$"),
+            ({"intrinsics": intr.K}, r"^intrinsics must be an Intrinsics, got ndarray .*"
+                                     r"Intrinsics.from_matrix\(K, width, height\)"),
+            ({"stamp_ns": 1.5}, r"^stamp_ns must be an integer number of nanoseconds, got "
+                                r"float 1.5 \(a stamp in seconds: int\(round\(seconds \* 1e9")):
+        with pytest.raises(ValueError, match=match):
+            dataclasses.replace(ok, **change).validate()
+    nan = depth.copy()
+    nan[0, :3] = [np.nan, np.inf, 0.0]  # holes, as 0 is
+    dataclasses.replace(ok, depth=nan, stamp_ns=np.int64(1)).validate()
+
+
 def test_health_rates_count_events_per_second():
     clock = Clock()
     h = H.Health("x", throttle_s=1.0, window_s=10.0, clock=clock)
