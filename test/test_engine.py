@@ -815,6 +815,38 @@ def test_offline_engine_renders_keyframes_and_the_label_rate_in_stream_time(cfg,
     assert all(np.array_equal(a.labels.labels, b.labels.labels) for a, b in zip(outs, again))
 
 
+def test_a_refused_frame_leaves_the_offline_engine_as_it_was(backbone, frames):
+    """A frame feed refuses (no pose, negative depth, a stamp in seconds, a stamp back in
+    time) is a ValueError at once saying what is wrong, and the frames after it are
+    labelled as if it had never come: a refused first frame set the training clock (more
+    iterations), a frame without a pose failed inside the field's scene box with a
+    TypeError, and a stamp back in time was taken in silence."""
+    c = config.load(None, {"mapper.fast.rays_per_iteration": 256,
+                           "run.training_rate_hz": 20.0})
+
+    def labels(engine, stream):
+        return [(o.frame.stamp_ns, o.labels.labels) for f in stream for o in engine.feed(f)]
+
+    reference = OfflineEngine(c, backbone)
+    ref = labels(reference, frames[:20])
+    engine = OfflineEngine(c, backbone)
+    f0, early = frames[0], frames[0].stamp_ns - 2_000_000_000
+    for bad, match in ((dataclasses.replace(f0, stamp_ns=early, pose=None), "has no pose"),
+                       (dataclasses.replace(f0, stamp_ns=early, depth=-f0.depth),
+                        "depth must be >= 0"),
+                       (dataclasses.replace(f0, stamp_ns=early * 1e-9), "nanoseconds")):
+        with pytest.raises(ValueError, match=match):
+            engine.feed(bad)
+    got = labels(engine, frames[:10])
+    with pytest.raises(ValueError, match=r"is 0.2 s before the previous frame .*stamp "
+                                          "order"):
+        engine.feed(frames[3])
+    got += labels(engine, frames[10:20])
+    assert engine.frames_in == 20 and engine.mapper.iterations == reference.mapper.iterations
+    assert [s for s, _ in got] == [s for s, _ in ref]
+    assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(got, ref))
+
+
 def test_embedding_spec_round_trip_and_errors():
     spec = EmbeddingSpec(tuple(classes.KNOWN_IDS), 16, "default")
     assert EmbeddingSpec.from_json(spec.to_json()) == spec and spec.channels == 25

@@ -106,6 +106,7 @@ class OfflineEngine:
         self.discovery = DiscoveryStage(cfg, cfg.discovery_node)
         self.frames_in = 0
         self._t0: int | None = None
+        self._last_in: int | None = None  # stamp of the last frame fed
         self._trained = 0
         self._last_label: int | None = None  # stamp of the last labelled frame
         self.seconds = dict.fromkeys(("backbone", "training", "rendering", "discovery"), 0.0)
@@ -132,16 +133,32 @@ class OfflineEngine:
         self._trained = max(self._trained, due)
 
     def feed(self, frame: Frame) -> list[Output]:
-        """One input frame (with pose); the labelled outputs it produced (0 or 1)."""
+        """One input frame (with pose); the labelled outputs it produced (0 or 1).
+
+        A frame refused with a ValueError (:meth:`Frame.validate`, no pose, a stamp before
+        the previous frame's, what the backbone refuses) leaves the engine as it was: the
+        frames after it are labelled as if it had never come."""
         frame.validate()
+        if frame.pose is None:
+            raise ValueError(f"frame {frame.stamp_ns} has no pose: the engine takes each "
+                             "frame's camera-to-world pose (frames without poses get them "
+                             "from neurncd_ros.core.odometry.with_odometry)")
+        if self._last_in is not None and frame.stamp_ns < self._last_in:
+            raise ValueError(f"frame {frame.stamp_ns} is "
+                             f"{(self._last_in - frame.stamp_ns) * 1e-9:.3g} s before the "
+                             f"previous frame ({self._last_in}): feed frames in stamp order "
+                             "(another sequence: a new OfflineEngine)")
+        rec = None
+        if self.embedding.wanted(frame.stamp_ns):
+            t = time.perf_counter()
+            rec = self.embedding.embed(frame.stamp_ns, frame.rgb, frame.depth)
+            self.seconds["backbone"] += time.perf_counter() - t
         self.frames_in += 1
+        self._last_in = frame.stamp_ns
         if self._t0 is None:
             self._t0 = frame.stamp_ns
-        if not self.embedding.wanted(frame.stamp_ns):
+        if rec is None:
             return []
-        t = time.perf_counter()
-        rec = self.embedding.embed(frame.stamp_ns, frame.rgb, frame.depth)
-        self.seconds["backbone"] += time.perf_counter() - t
         job = self.mapping.admit(frame, rec)
         self._train_until(frame.stamp_ns)
         if job is None:
