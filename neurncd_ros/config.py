@@ -345,8 +345,14 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
     merged: dict[str, Any] = {}
     for node_name, body in doc.items():
         if not isinstance(body, dict) or set(body) != {"ros__parameters"}:
+            # A plain YAML of sections (discovery: {entropy_threshold: 0.5}) reads as a
+            # node named after the section: say where the sections go instead.
+            section = str(node_name) in {name.split(".")[0] for name in section_classes()}
             raise ConfigError(f"{source}: entry {node_name!r} must hold exactly "
-                              "'ros__parameters:' (ROS 2 parameter-file form)")
+                              "'ros__parameters:' (ROS 2 parameter-file form)"
+                              + (f"; {node_name!r} is a section of parameters: put the "
+                                 "sections under '/**:' then 'ros__parameters:', as "
+                                 "`neurncd params` prints them" if section else ""))
         params = body["ros__parameters"] or {}
         if not isinstance(params, dict):
             raise ConfigError(f"{source}: {node_name}.ros__parameters must be a mapping")
@@ -453,7 +459,8 @@ def problems(path: str | Path) -> list[str]:
 
 
 def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
-    """Read and validate a parameter file (default: the shipped config/neurncd.yaml).
+    """Read and validate a parameter file (default: the shipped config/neurncd.yaml), in
+    ROS 2 form: the sections under ``/**:`` then ``ros__parameters:`` (module doc).
 
     ``overrides`` are dotted names applied on top (as from the command line). An error
     names its source: the file when the file alone is invalid, else the first override

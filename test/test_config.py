@@ -77,6 +77,15 @@ def test_file_errors(tmp_path):
     bad.write_text("mapper:\n  backend: fast\n")
     with pytest.raises(ConfigError, match="ros__parameters"):
         config.load(bad)
+    # A plain YAML of sections, as a user writes one first: where the sections go (the
+    # message alone told them to put 'ros__parameters:' under 'discovery:').
+    bad.write_text("discovery:\n  entropy_threshold: 0.5\n")
+    with pytest.raises(ConfigError, match=r"'discovery' is a section of parameters: put the "
+                                          r"sections under '/\*\*:' then 'ros__parameters:'"):
+        config.load(bad)
+    bad.write_text("bringup:\n  x: 1\n")  # not a section: the ROS form alone
+    with pytest.raises(ConfigError, match=r"ROS 2 parameter-file form\)$"):
+        config.load(bad)
     bad.write_text("/**:\n  ros__parameters:\n    mapper_node: {max_in_flight: -3}\n")
     with pytest.raises(ConfigError, match=rf"{re.escape(str(bad))}: mapper_node\.max_in_flight"):
         config.load(bad)
