@@ -710,6 +710,20 @@ def test_mapper_stage_saves_atomically_and_restores(cfg, backbone, frames, tmp_p
     back.load(path, Mapper.load)
     assert back.spec == backbone.spec and back.mapper.iterations == 3
     assert len(back.mapper.buffer) == len(st.mapper.buffer)
+    # A mistyped path is no map there (it was "no spec.json: not saved by the mapper").
+    with pytest.raises(ValueError, match=r"^no map at .*mpa\.pt \(the file a "
+                                         r"mapper_node\.map_path names\)$"):
+        _stage(cfg).load(tmp_path / "mpa.pt", Mapper.load)
+    # A map that fails to load leaves the stage with the map it had (it kept the other
+    # file's spec beside its own field, which refused every embedding after it).
+    other = tmp_path / "other.pt"
+    other.write_bytes(b"not a map")
+    (tmp_path / "other.pt.spec.json").write_text(
+        EmbeddingSpec((1, 2, 3), 0, "other").to_json())
+    mapper = back.mapper
+    with pytest.raises(ValueError, match="other.pt"):
+        back.load(other, Mapper.load)
+    assert back.spec == backbone.spec and back.mapper is mapper
     (tmp_path / "map.pt.spec.json").unlink()
     with pytest.raises(ValueError, match="spec.json is missing"):
         _stage(cfg).load(path, Mapper.load)

@@ -297,16 +297,20 @@ class MapperStage:
         return True
 
     def load(self, path: str | Path, load_mapper: Callable[[str], Any]) -> None:
-        """Restore a map saved by :meth:`save` (the field and its embedding spec)."""
+        """Restore a map saved by :meth:`save` (the field and its embedding spec); on an
+        error (ValueError) the stage keeps the map it had."""
         path = Path(path)
         spec_file = path.with_name(path.name + ".spec.json")
+        if not path.is_file():
+            raise ValueError(f"no map at {path} (the file a mapper_node.map_path names)")
         if not spec_file.is_file():
             raise ValueError(f"{spec_file} is missing: {path} was not saved by the mapper")
-        self.spec = EmbeddingSpec.from_json(spec_file.read_text())
-        self.mapper = load_mapper(str(path))
-        got = self.mapper.channels + self.mapper.feature_channels
-        if got != self.spec.channels:
-            raise ValueError(f"{path} has {got} channels, its spec {self.spec.channels}")
+        spec = EmbeddingSpec.from_json(spec_file.read_text())
+        mapper = load_mapper(str(path))
+        got = mapper.channels + mapper.feature_channels
+        if got != spec.channels:
+            raise ValueError(f"{path} has {got} channels, its spec {spec.channels}")
+        self.spec, self.mapper = spec, mapper
         if self.online:
             self.mapper.start()
 
