@@ -1102,3 +1102,16 @@ def test_summary_says_what_was_left_unrendered(cfg, backbone, frames):
     while st.next_view() is not None:
         pass
     assert "awaiting labels" in st.summary()
+
+
+def test_a_run_skips_a_frame_stamped_before_the_previous_one(cfg, backbone, frames):
+    """feed() refuses a frame older than the previous one (a library caller is told);
+    run(), as neurncd run drives it over a bag of two recordings, skips it, warns once
+    and counts it, and goes on with the frames after it."""
+    from neurncd_ros.core.engine.offline import OfflineEngine
+    engine = OfflineEngine(cfg, backbone=backbone)
+    stream = list(frames[:6])
+    stream.insert(4, dataclasses.replace(frames[1]))  # an old frame in the middle
+    with pytest.warns(UserWarning, match="before the previous frame"):
+        list(engine.run(stream, progress=False))
+    assert engine.refused == 1 and engine.frames_in == 6

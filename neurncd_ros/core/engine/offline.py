@@ -14,6 +14,9 @@ reproducible and describes what the nodes publish:
   seconds of stream time old: the live graph's label rate, keyframes included;
   the others are skipped, as the mapper node skips frames when a newer one
   waits or discovery is busy.
+
+It stays one module with ``neurncd run``'s outputs (label images, overlays, metrics.json,
+its summary): they are the engine's Output records written out, and change with them.
 """
 
 from __future__ import annotations
@@ -107,6 +110,7 @@ class OfflineEngine:
         self.frames_in = 0
         self._t0: int | None = None
         self._last_in: int | None = None  # stamp of the last frame fed
+        self.refused = 0  # frames run() skipped because feed() refused them
         self._trained = 0
         self._last_label: int | None = None  # stamp of the last labelled frame
         self.seconds = dict.fromkeys(("backbone", "training", "rendering", "discovery"), 0.0)
@@ -183,14 +187,24 @@ class OfflineEngine:
 
     def run(self, frames: Iterable[Frame], total: int | None = None, progress: bool = True,
             desc: str = "run") -> Iterator[Output]:
-        """:meth:`feed` over a stream, with a progress bar named ``desc``."""
+        """:meth:`feed` over a stream, with a progress bar named ``desc``. A frame that
+        :meth:`feed` refuses (a stamp before the previous frame's, as in a bag of two
+        recordings, where the nodes' pairing drops it too) is skipped: the first is warned
+        of, and :attr:`refused` counts them (``frames_refused`` in metrics.json)."""
         from tqdm import tqdm
 
         bar = tqdm(frames, total=total, desc=desc, unit="frame", disable=not progress)
         for frame in bar:
             if self.cfg.run.max_frames and self.frames_in >= self.cfg.run.max_frames:
                 break
-            yield from self.feed(frame)
+            try:
+                outputs = self.feed(frame)
+            except ValueError as err:
+                if not self.refused:
+                    warnings.warn(f"frame skipped: {err}", stacklevel=2)
+                self.refused += 1
+                continue
+            yield from outputs
             if self.mapper is not None:
                 bar.set_postfix(iterations=self.mapper.iterations,
                                 keyframes=len(self.mapping.keyframe_stamps))
@@ -335,7 +349,8 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
     mapper = engine.mapper
     shown, unshown = tally.table(engine.discovery.discoverer)
     result: dict[str, Any] = {
-        "frames": engine.frames_in, "labelled": n_labelled, "keyframes_labelled": n_keyframes,
+        "frames": engine.frames_in, "frames_refused": engine.refused,
+        "labelled": n_labelled, "keyframes_labelled": n_keyframes,
         "keyframes": len(engine.mapping.keyframe_stamps),
         "iterations": mapper.iterations if mapper is not None else 0,
         "backend": cfg.mapper.backend, "backbone": cfg.backbone.kind,
@@ -431,6 +446,10 @@ def summary(result: dict[str, Any]) -> str:
              f"training {result['seconds_training']} s ({result['iterations']} iterations, "
              f"{result['backend']}), rendering {result['seconds_rendering']} s, discovery "
              f"{result['seconds_discovery']} s"]
+    if result.get("frames_refused"):
+        lines.append(f"{plural(result['frames_refused'], 'frame')} skipped, refused by the "
+                     "engine (the first is warned of above: a stamp before the previous "
+                     "frame's, as in a bag of two recordings)")
     if result.get("poses") == "odometry":
         lost = int(result.get("odometry_lost", 0))
         lines.append(f"poses estimated by RGB-D odometry (the bag has none): {lost} of "
