@@ -1115,3 +1115,14 @@ def test_a_run_skips_a_frame_stamped_before_the_previous_one(cfg, backbone, fram
     with pytest.warns(UserWarning, match="before the previous frame"):
         list(engine.run(stream, progress=False))
     assert engine.refused == 1 and engine.frames_in == 6
+
+
+def test_depth_in_millimetres_is_refused_by_name(cfg, backbone, frames):
+    """Depth in millimetres given as float32 (a 16UC1 PNG read without the / 1000) put
+    every pixel beyond mapper.max_depth, and the frames were labelled, wrongly, without a
+    word: the mapper stage refuses them naming the unit."""
+    st = _stage(cfg)
+    mm = dataclasses.replace(frames[0], depth=frames[0].depth * 1000)
+    assert st.admit(mm, _record(backbone, mm)) is None
+    assert st.health.problems["depth_not_metres"] == 1
+    assert st.admit(frames[0], _record(backbone, frames[0])) is not None

@@ -78,6 +78,11 @@ from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyfram
                     view_visibility)
 
 
+NOT_METRES_M = 100.0
+"""A frame whose median depth is beyond this is not in metres (an RGB-D camera measures
+up to about 10 m; depth in millimetres given as float32 has a median in the thousands,
+and every pixel then lay beyond mapper.max_depth: labels silently wrong)."""
+
 @dataclasses.dataclass(frozen=True)
 class MapperNodeConfig:
     """The mapper stage: pairing, the field's keyframes, which views to render and how
@@ -402,6 +407,14 @@ class MapperStage:
         if valid < self.cfg.min_valid_depth:
             self.health.problem("no_depth", f"frame {frame.stamp_ns} skipped: only "
                                 f"{100 * valid:.1f} % of its pixels have a depth measurement")
+            return None
+        sample = frame.depth[::8, ::8]
+        sample = sample[sample > 0]
+        far = float(np.median(sample)) if sample.size else 0.0
+        if far > NOT_METRES_M:
+            self.health.problem("depth_not_metres", f"frame {frame.stamp_ns} skipped: its "
+                                f"median depth is {far:.0f} m: depth must be in metres (from "
+                                "millimetres, as a 16UC1 image or PNG holds them: / 1000)")
             return None
         try:
             mapper = self._ensure_mapper(record.spec)
