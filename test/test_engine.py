@@ -1126,3 +1126,17 @@ def test_depth_in_millimetres_is_refused_by_name(cfg, backbone, frames):
     assert st.admit(mm, _record(backbone, mm)) is None
     assert st.health.problems["depth_not_metres"] == 1
     assert st.admit(frames[0], _record(backbone, frames[0])) is not None
+
+
+def test_the_engine_saves_the_map_it_loads(cfg, backbone, frames, tmp_path):
+    """OfflineEngine.save_map / load_map: a library caller saves and continues a map as
+    the mapper node does (saving meant reaching into engine.mapping)."""
+    from neurncd_ros.core.engine.offline import OfflineEngine
+    engine = OfflineEngine(cfg, backbone=backbone)
+    path = tmp_path / "room.pt"
+    assert engine.save_map(path) is False  # no map before the first frame
+    list(engine.run(frames[:12], progress=False))
+    assert engine.save_map(path) and (tmp_path / "room.pt.spec.json").is_file()
+    again = OfflineEngine(cfg, backbone=backbone)
+    assert again.load_map(path) == {"iterations": engine.mapper.iterations,
+                                    "keyframes": len(engine.mapper.buffer)}

@@ -128,6 +128,12 @@ class OfflineEngine:
         self.mapping.load(path, Mapper.load)
         return {"iterations": self.mapper.iterations, "keyframes": len(self.mapper.buffer)}
 
+    def save_map(self, path: str | Path) -> bool:
+        """Save the map (the field and its keyframes) as the mapper node does, to ``path``
+        and ``<path>.spec.json``, atomically; False if there is no map yet. What
+        :meth:`load_map` (and the mapper node's ``mapper_node.map_path``) continues."""
+        return self.mapping.save(path)
+
     def _train_until(self, stamp_ns: int) -> None:
         due = int(self.cfg.run.training_rate_hz * (stamp_ns - self._t0) * 1e-9)
         if due > self._trained and self.mapper is not None and len(self.mapper.buffer):
@@ -371,7 +377,7 @@ def run_frames(frames: Iterable[Frame], cfg, out_dir: str | Path, total: int | N
         result["metrics_backbone_only"] = ev_backbone.result()
     if map_path:
         result["map"] = {"path": map_path, "loaded": loaded,
-                         "saved": engine.mapping.save(map_path),
+                         "saved": engine.save_map(map_path),
                          "iterations": mapper.iterations if mapper is not None else 0}
     state_path = cfg.discovery_node.state_path
     if state_path:
