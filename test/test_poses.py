@@ -77,6 +77,31 @@ def test_auto_falls_back_to_odometry_that_follows_the_camera(walk):
             assert dt < 0.05 and dr < 3.0, (dt, dr)
 
 
+def test_auto_chooses_odometry_on_the_clock_when_the_frames_stop(walk):
+    """A stream shorter than pose_auto_wait_s (a 5-frame bag without poses): no frame comes
+    after the wait, so the choice is made on the clock (the mapper polls it once a second)
+    and the frames tracked meanwhile are handed on; until then they count as waiting (the
+    mapper reports them pending, so bringup does not stop the nodes first). The choice
+    was only made when a frame came after the wait: the mapper never chose, held the
+    tracked poses and labelled nothing."""
+    clock = Clock()
+    st = _stage("auto", clock)
+    assert st.poll() == [] and st.mode is None      # no frame yet: nothing to decide
+    assert _feed_images(st, walk[:5]) == [] and st.waiting == 5
+    assert st.poll() == [] and st.mode is None      # within the wait
+    clock.t = 1.5
+    poses = st.poll()
+    assert st.mode == "odometry" and st.publishes
+    assert [s for s, _ in poses] == [f.stamp_ns for f in walk[:5]]
+    assert st.waiting == 0 and st.poll() == []
+    # A pose topic chosen meanwhile: the odometry's poses are not handed on.
+    st = _stage("auto", clock)
+    _feed_images(st, walk[:3])
+    assert st.offer_pose(walk[3].stamp_ns, walk[3].pose) and st.waiting == 0
+    clock.t = 5.0
+    assert st.poll() == [] and st.mode == "topic"
+
+
 def test_odometry_tracks_only_the_frames_that_were_embedded(walk):
     """odometry_frames embedded: a third of the frames embedded, a third tracked (the
     mapper uses no other); all: every colour+depth pair, embeddings or not."""
@@ -308,6 +333,65 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
         assert len(poses) >= 10 and len(labels) >= 3, logs["mapper"][-3000:]
         assert "pose source: odometry" in logs["mapper"]
         assert all(p.poll() is None for p in procs.values())
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        codes = [stop(p, timeout=30) for p in procs.values()]
+    assert codes == [0, 0, 0]
+
+
+@pytest.mark.ros
+def test_nodes_label_a_short_stream_without_poses(tmp_path):
+    """Five frames without poses, then nothing (a user's 5-frame bag replayed with bringup):
+    the stream ends before pose_auto_wait_s (3 s), so the mapper chooses odometry on its
+    clock, the frames' inputs wait for that choice, and all five are labelled. The mapper
+    chose only when a frame came after the wait: it stayed undecided, labelled nothing and
+    reported nothing pending, so bringup stopped the nodes as if done."""
+    import rosutil
+    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+
+    domain = rosutil.domain(12)
+    apply_ros_env(domain)
+    import rclpy
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+
+    frames = list(synth.generate(1005, 5, synth.SynthConfig(width=160, height=120,
+                                                            fps=10.0)))
+    args = ["--ros-args", "-p", "embedding_node.max_rate_hz:=0.0"]
+    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
+                      tmp_path / f"{n}.log") for n in ("embedding", "mapper", "discovery")}
+    rclpy.init()
+    node = rclpy.create_node("short_camera_without_poses")
+    labels = []
+    try:
+        node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
+        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
+            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
+            ("/camera/color/camera_info", CameraInfo))}
+        # Every node up and seeing its upstream node, as bringup waits before a bag.
+        diag = rosutil.diagnostics_of(node, ("embedding", "mapper", "discovery"))
+        assert spin_until(node, lambda: all(p.get_subscription_count() >= 2
+                                            for p in list(pubs.values())[:2])
+                          and len(diag) == 3 and all(
+                              diag[n].get("upstream_publishers") == "1"
+                              for n in ("mapper", "discovery")), 120)
+        for f in frames:
+            pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, f.stamp_ns,
+                                                                      "camera"))
+            pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", f.stamp_ns,
+                                                              "camera"))
+            pubs["/camera/depth/image_raw"].publish(
+                image_msg(np.round(f.depth * 1000).astype(np.uint16), "16UC1", f.stamp_ns,
+                          "camera"))
+            spin_until(node, lambda: False, 0.1)   # the camera's pace, 10 Hz
+        spin_until(node, lambda: len(labels) >= 1, 60)
+        logs = {n: (tmp_path / f"{n}.log").read_text() for n in procs}
+        assert labels, (diag, logs)
+        assert "pose source: odometry" in logs["mapper"]
+        assert {lab.header.stamp.sec * 10**9 + lab.header.stamp.nanosec for lab in labels} \
+            <= {f.stamp_ns for f in frames}
     finally:
         node.destroy_node()
         rclpy.shutdown()

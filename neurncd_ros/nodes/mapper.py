@@ -87,6 +87,13 @@ def make_node():
                 TFMessage = None
             self.poses = PoseStage(self.node_cfg, self.cfg.odometry, self.topics, self.health,
                                    tf_available=TFMessage is not None)
+            # While pose_source auto has not chosen (up to pose_auto_wait_s of frames), the
+            # frames' colour, depth and embeddings wait for the poses the choice hands on:
+            # at sync_horizon_s (2 s) alone the first frames expired before a choice at 3 s.
+            self._deciding = self.poses.mode is None
+            if self._deciding:
+                self.stage.sync.horizon_s = (self.node_cfg.sync_horizon_s
+                                             + self.node_cfg.pose_auto_wait_s)
             self.pub_pose = None
             self._own_poses: dict[int, None] = {}  # stamps of the poses we published lately
             self._segment = 0
@@ -207,6 +214,9 @@ def make_node():
                     self.pub_pose.publish(pose_msg(T, stamp, self.topics.world_frame))
                 self._check_segment()
                 self._offer("pose", stamp, T)
+            if self._deciding and self.poses.mode is not None and not self.poses.waiting:
+                self._deciding = False
+                self.stage.sync.horizon_s = self.node_cfg.sync_horizon_s
 
         def _check_segment(self) -> None:
             odo = self.poses.odometry
@@ -355,8 +365,11 @@ def make_node():
             self.input_watch.check(self.stage.sync.received + len(self.intake))
             if not self.stage.check_training():
                 self.worker.cancel.set()  # no stale output after the field died
+            if self._deciding:  # a stream that ended within pose_auto_wait_s is decided too
+                self._queue(lambda: self._offer_poses(self.poses.poll()))
             backlog = len(self.intake) + int(self.intake_worker.busy)
-            self.health.gauge("pending", self.stage.pending + int(self.worker.busy) + backlog)
+            self.health.gauge("pending", self.stage.pending + int(self.worker.busy) + backlog
+                              + self.poses.waiting)
             self.health.gauge("intake_backlog", backlog)
             # Whether the embedding node is seen yet: bringup starts a bag only then.
             self.health.gauge("upstream_publishers", self.count_publishers(self.topics.embedding))

@@ -20,7 +20,9 @@
   /tf tree linking the two frames, else odometry once ``auto_wait_s`` of frames
   passed without either. The choice is logged once and kept. Frames are
   tracked while the choice is open; when it falls on odometry their poses are
-  handed on (the mapper pairs those whose embeddings still wait).
+  handed on (the mapper pairs those whose embeddings still wait). The node
+  polls the choice once a second (:meth:`PoseStage.poll`), so a stream that ends within
+  the wait (a short bag) is decided and handed on too.
 
 With tf or odometry the node publishes the poses on ``topics.pose`` for the
 other nodes (and the user); with ``topic`` it publishes nothing.
@@ -110,6 +112,21 @@ class PoseStage:
         return (f"pose source odometry: {odo.frames} frames tracked ({ms:.1f} ms per frame), "
                 + ", ".join(f"{k} {v}" for k, v in odo.counts.items())
                 + f", segments {odo.segment + 1}")
+
+    @property
+    def waiting(self) -> int:
+        """Frames tracked while ``auto`` has not chosen: their poses wait for the choice
+        (work the mapper still has to do)."""
+        return len(self._early)
+
+    def poll(self) -> list[tuple[int, np.ndarray]]:
+        """Make the ``auto`` choice on the clock alone and hand on the poses tracked while
+        it was open: without this a stream that ended within ``pose_auto_wait_s`` (a
+        5-frame bag) was never decided, as only a later frame made the choice."""
+        if self._decide() != "odometry" or not self._early:
+            return []
+        out, self._early = self._early, []
+        return out
 
     # ------------------------------------------------------------ choosing
     def _decide(self) -> str | None:
