@@ -1004,6 +1004,31 @@ def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):
     assert text.startswith("waiting for embedding:") and "embedding node runs" in text
 
 
+def test_mapper_stage_waits_for_poses_in_silence_while_their_source_is_chosen(cfg, backbone,
+                                                                            frames):
+    """pose_source auto (the default) with no pose topic: the mapper waits up to
+    pose_auto_wait_s before it chooses odometry, and a 30 Hz camera fills its queues
+    meanwhile. That wait is no missing pose topic: it warned 'waiting for pose
+    (/camera/pose): nothing arrives there ... (check the topic names' every time, just
+    before its line 'pose source: odometry (pose_source auto)'. Once the source is chosen,
+    a pose that never comes is reported as before."""
+    for choosing in (True, False):
+        st = _stage(cfg, queue_size=4, sync_horizon_s=0.1)
+        st.pose_choice_open = choosing
+        logged = []
+        st.health._log = lambda level, text: logged.append(text)
+        for f in frames[:12]:
+            st.offer("embedding", f.stamp_ns, _record(backbone, f))
+            st.offer("color", f.stamp_ns, f.rgb)
+            assert st.offer("depth", f.stamp_ns, f.depth) == []
+        waits = [t for t in logged if "waiting for" in t]
+        if choosing:
+            assert "starved" not in st.health.problems, waits
+        else:
+            assert st.health.problems["starved"] >= 1
+            assert waits[0].startswith("waiting for pose")
+
+
 def test_mapper_stage_drops_a_far_future_stamp_and_reports_a_frame_without_pose(
         cfg, backbone, frames):
     """One frame stamped 10^6 s ahead (a driver's glitch) is dropped and reported; the

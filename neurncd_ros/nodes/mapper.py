@@ -90,7 +90,7 @@ def make_node():
             # While pose_source auto has not chosen (up to pose_auto_wait_s of frames), the
             # frames' colour, depth and embeddings wait for the poses the choice hands on:
             # at sync_horizon_s (2 s) alone the first frames expired before a choice at 3 s.
-            self._deciding = self.poses.mode is None
+            self._deciding = self.stage.pose_choice_open = self.poses.mode is None
             if self._deciding:
                 self.stage.sync.horizon_s = (self.node_cfg.sync_horizon_s
                                              + self.node_cfg.pose_auto_wait_s)
@@ -214,6 +214,7 @@ def make_node():
                     self.pub_pose.publish(pose_msg(T, stamp, self.topics.world_frame))
                 self._check_segment()
                 self._offer("pose", stamp, T)
+            self.stage.pose_choice_open = self.poses.mode is None
             if self._deciding and self.poses.mode is not None and not self.poses.waiting:
                 self._deciding = False
                 self.stage.sync.horizon_s = self.node_cfg.sync_horizon_s

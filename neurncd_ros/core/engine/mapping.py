@@ -274,6 +274,9 @@ class MapperStage:
         self._recent: collections.deque = collections.deque(maxlen=max(1, cfg.fusion_recent))
         self._fusion_inputs = FusionInputs()  # the render thread's alone
         self.stream_topics: dict[str, str] = {}  # stream -> topic, named in the reports
+        # The node is still choosing where poses come from (pose_source auto): no pose yet
+        # is the wait for that choice, not a pose topic that never publishes.
+        self.pose_choice_open = False
         self.health.set_state("waiting", "no frame with an embedding yet")
 
     # ------------------------------------------------------------ the field
@@ -374,7 +377,8 @@ class MapperStage:
         with self._lock:
             groups = self.sync.add(stream, stamp_ns, value)
         refused = [s for s in ("color", "depth") if s in self.health.refused()]
-        report_starved(self.health, self.sync.starved(), self.cfg.sync_tolerance_ms,
+        starved = [s for s in self.sync.starved() if s != "pose" or not self.pose_choice_open]
+        report_starved(self.health, starved, self.cfg.sync_tolerance_ms,
                        f"inputs do (the embedding node cannot embed the {' and '.join(refused)}"
                        " this node refuses either; check that stamps agree" if refused else
                        "inputs do (check the topic names, that the embedding node runs, "
