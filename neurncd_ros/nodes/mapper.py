@@ -203,6 +203,8 @@ def make_node():
 
         def _offer_poses(self, poses) -> None:
             """Poses from the pose stage to the mapper stage (and out, from tf/odometry)."""
+            if self._deciding:  # the choice made: the frames tracked meanwhile go first
+                poses = self.poses.poll() + list(poses)
             for stamp, T in poses:
                 if self.poses.publishes:
                     if self.pub_pose is None:
