@@ -495,6 +495,22 @@ def test_a_node_that_receives_nothing_says_where_it_listens(executor_node, capfd
     assert err.count("nothing received for 0 s on") == 1, err
     assert "/robot1/camera/color/image_raw (0 publishers)" in err, err
     assert "/camera/depth/image_raw (0 publishers)" in err and "topics.*" in err
+    # Inputs that have publishers but send nothing (the upstream node still waiting for
+    # its own inputs): the names are right, and the warning does not blame them.
+    from std_msgs.msg import String
+    quiet = rclpy.create_node("quiet_upstream", context=node.context)
+    listener = rclpy.create_node("listener", context=node.context)
+    try:
+        quiet.create_publisher(String, "/upstream/quiet", 1)
+        watch = InputWatch(listener, ["/upstream/quiet"], after_s=0.0)
+        assert _wait_for(lambda: listener.count_publishers("/upstream/quiet"), 30)
+        watch.check(received=0)
+    finally:
+        quiet.destroy_node()
+        listener.destroy_node()
+    err = capfd.readouterr().err
+    assert "/upstream/quiet (1 publishers)" in err and "names are right" in err, err
+    assert "topics.*" not in err, err
 
 
 def test_a_node_says_when_an_input_loses_its_publisher_and_when_it_is_back(executor_node,

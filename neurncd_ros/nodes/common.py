@@ -300,10 +300,18 @@ class InputWatch:
             return
         self.warned = True
         parts = [f"{self._name(t)} ({counts[t]} publishers)" for t in self.topics]
+        if all(counts.values()):
+            # The names are right: a user audit's discovery node blamed them while the
+            # mapper was still choosing its pose source for a bag without poses.
+            advice = ("every one has a publisher, so the names are right: the upstream "
+                      "node has published nothing yet (it may still wait for its own "
+                      "inputs: a camera not streaming, the mapper choosing its pose source) "
+                      "or its QoS does not match this node's (README, 'Topic contract')")
+        else:
+            advice = ("check the topic names (topics.* parameters, the namespace, remaps) "
+                      "and that the camera or the upstream node runs")
         self.node.get_logger().warning(
-            f"nothing received for {self.after_s:g} s on {', '.join(parts)}: check the topic "
-            "names (topics.* parameters, the namespace, remaps) and that the camera or the "
-            "upstream node runs")
+            f"nothing received for {self.after_s:g} s on {', '.join(parts)}: {advice}")
 
 
 def sensor_qos(depth: int = 5):
