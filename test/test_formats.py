@@ -324,3 +324,18 @@ def test_an_output_is_replaced_only_by_a_complete_one(tmp_path):
     (tmp_path / "mine").mkdir()
     with pytest.raises(ValueError, match="is not a Replica folder; not overwriting"):
         formats.write_replica(tmp_path / "mine", frames, overwrite=True)
+
+
+def test_sun_depth_in_a_shared_layout_is_named_as_sun(real_data_dir, tmp_path):
+    """A SUN RGB-D frame in slambook's color/ depth/ pose.txt layout, no preset: read as
+    millimetres its rotated storage gives a 21 m room, and the check advised ICL-NUIM's
+    1/5000 m (4.3 m, wrong) instead of SUN's own decoding (2.7 m)."""
+    import shutil
+    single = real_data_dir / "single_frames"
+    for sub in ("color", "depth"):
+        (tmp_path / sub).mkdir()
+    shutil.copy(single / "SUN_color.jpg", tmp_path / "color" / "1.jpg")
+    shutil.copy(single / "SUN_depth.png", tmp_path / "depth" / "1.png")
+    (tmp_path / "pose.txt").write_text("0 0 0 0 0 0 1\n")
+    with pytest.raises(FormatError, match=r"multiples of 8.*2\.7 m.*preset=sun"):
+        list(formats.read_posetxt(tmp_path))

@@ -212,6 +212,21 @@ class DepthScaleCheck:
         lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
         if lo <= med <= hi:
             return
+        raw = read_raw16(where)
+        measured = raw[raw > 0]
+        if measured.size and np.mean(measured % 8 == 0) > 0.9:
+            # SUN RGB-D's rotated storage (a value's low 3 bits are its top 3, 0 below
+            # 8.2 m: nearly all multiples of 8, against an eighth of other data's): at
+            # 1/5000 m it also looks indoor, and the ICL advice gave 4.3 m for a 2.7 m room.
+            sun, _ = measured_depth(decode_depth(raw, "sun_rotated", 1000.0))
+            if sun is not None and lo <= sun <= hi:
+                raise FormatError(
+                    f"{self.folder}: the depth of {where.name} read with the default scale "
+                    f"of a {self.kind} folder has a median of {med:.1f} m, not an indoor "
+                    f"scene ({lo:g}-{hi:g} m); its values are nearly all multiples of 8, as SUN "
+                    f"RGB-D stores them rotated, and read so they give {sun:.1f} m. Say "
+                    "which: neurncd convert --opt preset=sun (SUN RGB-D). Setting preset "
+                    "or depth_scale skips this check")
         for scale, who in COMMON_DEPTH_SCALES.items():
             alt = med * self.scale / scale
             if scale == self.scale or not lo <= alt <= hi:
