@@ -339,3 +339,15 @@ def test_sun_depth_in_a_shared_layout_is_named_as_sun(real_data_dir, tmp_path):
     (tmp_path / "pose.txt").write_text("0 0 0 0 0 0 1\n")
     with pytest.raises(FormatError, match=r"multiples of 8.*2\.7 m.*preset=sun"):
         list(formats.read_posetxt(tmp_path))
+
+
+def test_an_unknown_layout_with_rgb_and_depth_folders_names_kind_tum(tmp_path):
+    """rgb/ and depth/ of timestamp-named files without rgb.txt read fine with --kind tum,
+    but auto-detection said only 'unknown layout'."""
+    (tmp_path / "rgb").mkdir()
+    (tmp_path / "depth").mkdir()
+    with pytest.raises(FormatError, match="unknown layout.*--kind tum"):
+        formats.detect_kind(tmp_path)
+    (tmp_path / "rgb").rmdir()
+    with pytest.raises(FormatError, match=r"NYUv2 raw\)\)$"):
+        formats.detect_kind(tmp_path)

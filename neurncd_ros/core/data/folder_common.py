@@ -430,9 +430,13 @@ def detect_kind(folder: str | Path) -> str:
         return "tum"
     if any(f.glob("r-*.ppm")) and any(f.glob("d-*.pgm")):
         return "nyu"
+    hint = ("; rgb/ and depth/ without rgb.txt read as a TUM folder with --kind tum "
+            "(files named by their timestamps)"
+            if (f / "rgb").is_dir() and (f / "depth").is_dir() else "")
     raise FormatError(f"{f}: unknown layout (expected traj_w_c.txt + rgb/ (replica), "
                       "trajectory.log (redwood), pose.txt + color/ (posetxt), "
-                      "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))")
+                      "groundtruth.txt / rgb.txt (tum), or r-*.ppm + d-*.pgm (NYUv2 raw))"
+                      + hint)
 
 
 @contextlib.contextmanager
