@@ -136,3 +136,31 @@ def spin_until(node, predicate, timeout: float) -> bool:
         if predicate():
             return True
     return False
+
+
+def camera_publishers(node) -> dict:
+    """A camera driver's publishers on the default topics, best effort as drivers publish:
+    colour, depth and camera info, by topic."""
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from neurncd_ros.nodes.common import sensor_qos
+
+    return {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
+        ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
+        ("/camera/color/camera_info", CameraInfo))}
+
+
+def publish_frame(pubs: dict, frame, stamp_ns: int | None = None) -> None:
+    """One frame as a camera driver sends it, through :func:`camera_publishers`: camera
+    info, rgb8 colour and 16UC1 depth in millimetres, stamped ``stamp_ns`` (default the
+    frame's own stamp)."""
+    import numpy as np
+
+    from neurncd_ros.nodes.common import camera_info_msg, image_msg
+
+    stamp = frame.stamp_ns if stamp_ns is None else stamp_ns
+    pubs["/camera/color/camera_info"].publish(camera_info_msg(frame.intrinsics, stamp,
+                                                              "camera"))
+    pubs["/camera/color/image_raw"].publish(image_msg(frame.rgb, "rgb8", stamp, "camera"))
+    pubs["/camera/depth/image_raw"].publish(
+        image_msg(np.round(frame.depth * 1000).astype(np.uint16), "16UC1", stamp, "camera"))

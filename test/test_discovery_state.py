@@ -99,6 +99,18 @@ def test_a_refused_state_is_kept_aside_and_a_folder_is_refused_at_start(views, t
         DiscoveryStage(cfg, folder)
 
 
+def _saving_stage(cfg, vs, tmp_path):
+    """A stage saving to tmp_path/discovery.pt every 30 s of its clock (``now[0]``), after
+    labelling the first 3 views: (stage, now, path)."""
+    now = [0.0]
+    path = tmp_path / "discovery.pt"
+    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path), save_period_s=30)
+    stage = DiscoveryStage(cfg, node_cfg, clock=lambda: now[0])
+    for v in vs[:3]:
+        stage.label_view(v)
+    return stage, now, path
+
+
 def test_the_state_is_saved_once_due_while_idle_and_only_when_something_is_new(views,
                                                                                tmp_path):
     """The node asks for a save after each view and while idle: what the last views
@@ -106,12 +118,7 @@ def test_the_state_is_saved_once_due_while_idle_and_only_when_something_is_new(v
     SIGKILL after the input stopped lost novel ids 105-108), and an idle node does not
     rewrite an unchanged state every period."""
     cfg, vs = views
-    now = [0.0]
-    path = tmp_path / "discovery.pt"
-    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path), save_period_s=30)
-    stage = DiscoveryStage(cfg, node_cfg, clock=lambda: now[0])
-    for v in vs[:3]:
-        stage.label_view(v)
+    stage, now, path = _saving_stage(cfg, vs, tmp_path)
     assert not stage.save_state(force=False) and not path.exists()  # not due yet
     now[0] = 31.0  # idle since: the next idle call saves
     assert stage.save_state(force=False) and path.is_file()
@@ -148,12 +155,7 @@ def test_a_reset_during_a_save_is_saved_next(views, tmp_path, monkeypatch):
     from neurncd_ros.core.discovery import state
 
     cfg, vs = views
-    now = [0.0]
-    path = tmp_path / "discovery.pt"
-    node_cfg = dataclasses.replace(cfg.discovery_node, state_path=str(path), save_period_s=30)
-    stage = DiscoveryStage(cfg, node_cfg, clock=lambda: now[0])
-    for v in vs[:3]:
-        stage.label_view(v)
+    stage, now, path = _saving_stage(cfg, vs, tmp_path)
     assert stage.discoverer.novel_ids
     write = state.save_state
 
@@ -166,6 +168,6 @@ def test_a_reset_during_a_save_is_saved_next(views, tmp_path, monkeypatch):
     monkeypatch.setattr(state, "save_state", write)
     now[0] = 62.0
     assert stage.save_state(force=False), "the reset was never saved"
-    fresh = DiscoveryStage(cfg, node_cfg)
+    fresh = DiscoveryStage(cfg, stage.node_cfg)
     fresh.set_spec(stage.spec)
     assert fresh.state_refused is None and not fresh.discoverer.novel_ids

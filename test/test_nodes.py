@@ -13,7 +13,8 @@ from neurncd_ros.core import classes, msgconv
 from neurncd_ros.core.camera import Intrinsics
 
 import rosutil
-from rosutil import REPO, apply_ros_env, diagnostics_of, ros_env, spin_until, start, stop
+from rosutil import (REPO, apply_ros_env, camera_publishers, diagnostics_of, publish_frame,
+                     ros_env, spin_until, start, stop)
 
 pytestmark = pytest.mark.ros
 
@@ -509,11 +510,9 @@ def test_mapper_says_when_another_publishers_poses_are_ignored(ros_node, tmp_pat
     which it ignored in silence. It says so now (problem ``pose_ignored``), and not for its
     own poses."""
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
 
     from neurncd_ros import synth
-    from neurncd_ros.nodes.common import (camera_info_msg, image_msg, output_qos, pose_msg,
-                                          sensor_qos)
+    from neurncd_ros.nodes.common import output_qos, pose_msg
 
     node, domain = ros_node
     frames = list(synth.generate(1004, 20, synth.SynthConfig(width=96, height=72, fps=6.0)))
@@ -525,11 +524,9 @@ def test_mapper_says_when_another_publishers_poses_are_ignored(ros_node, tmp_pat
     ignored = "poses from another publisher on /camera/pose are ignored"
     try:
         diag = diagnostics_of(node, ("mapper",))
-        pubs = {t: node.create_publisher(m, t, q) for t, m, q in (
-            ("/camera/color/image_raw", Image, sensor_qos(10)),
-            ("/camera/depth/image_raw", Image, sensor_qos(10)),
-            ("/camera/color/camera_info", CameraInfo, sensor_qos(10)),
-            ("/camera/pose", PoseStamped, output_qos()))}
+        pubs = {**camera_publishers(node),
+                "/camera/pose": node.create_publisher(PoseStamped, "/camera/pose",
+                                                      output_qos())}
         own = []
         node.create_subscription(PoseStamped, "/camera/pose", own.append, output_qos())
         assert spin_until(node, lambda: "mapper" in diag, 120), log.read_text()
@@ -540,12 +537,7 @@ def test_mapper_says_when_another_publishers_poses_are_ignored(ros_node, tmp_pat
             end = time.monotonic() + timeout
             while time.monotonic() < end and not until():
                 f, stamp = frames[k % len(frames)], 10**9 + k * 10**9 // 6
-                pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, stamp,
-                                                                          "camera"))
-                pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", stamp,
-                                                                  "camera"))
-                pubs["/camera/depth/image_raw"].publish(image_msg(
-                    np.round(f.depth * 1000).astype(np.uint16), "16UC1", stamp, "camera"))
+                publish_frame(pubs, f, stamp)
                 if foreign:  # a SLAM's pose of the frame, stamped as it computed it
                     pubs["/camera/pose"].publish(pose_msg(f.pose, stamp + 3_000_000, "map"))
                 k += 1

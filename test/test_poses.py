@@ -290,15 +290,16 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
     import time
 
     import rosutil
-    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
+                         spin_until, start, stop)
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import Image
 
-    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+    from neurncd_ros.nodes.common import output_qos
 
     frames = list(synth.generate(1005, 90, synth.SynthConfig(width=160, height=120,
                                                              fps=10.0)))
@@ -311,22 +312,14 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
     try:
         node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
         node.create_subscription(PoseStamped, "/camera/pose", poses.append, output_qos(50))
-        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
-            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
-            ("/camera/color/camera_info", CameraInfo))}
+        pubs = camera_publishers(node)
         assert spin_until(node, lambda: all(p.get_subscription_count() >= 2
                                             for p in list(pubs.values())[:2]), 120)
         end = time.monotonic() + 240
         i = 0
         while time.monotonic() < end and not (len(labels) >= 3 and len(poses) >= 10):
             f = frames[i % len(frames)]
-            stamp = f.stamp_ns + (i // len(frames)) * 20_000_000_000
-            pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, stamp,
-                                                                      "camera"))
-            pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", stamp, "camera"))
-            pubs["/camera/depth/image_raw"].publish(
-                image_msg(np.round(f.depth * 1000).astype(np.uint16), "16UC1", stamp,
-                          "camera"))
+            publish_frame(pubs, f, f.stamp_ns + (i // len(frames)) * 20_000_000_000)
             i += 1
             spin_until(node, lambda: False, 0.1)
         logs = {n: (tmp_path / f"{n}.log").read_text() for n in procs}
@@ -348,14 +341,15 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
     chose only when a frame came after the wait: it stayed undecided, labelled nothing and
     reported nothing pending, so bringup stopped the nodes as if done."""
     import rosutil
-    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
+                         spin_until, start, stop)
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
     import rclpy
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import Image
 
-    from neurncd_ros.nodes.common import camera_info_msg, image_msg, output_qos, sensor_qos
+    from neurncd_ros.nodes.common import output_qos
 
     frames = list(synth.generate(1005, 5, synth.SynthConfig(width=160, height=120,
                                                             fps=10.0)))
@@ -367,9 +361,7 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
     labels = []
     try:
         node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
-        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
-            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
-            ("/camera/color/camera_info", CameraInfo))}
+        pubs = camera_publishers(node)
         # Every node up and seeing its upstream node, as bringup waits before a bag.
         diag = rosutil.diagnostics_of(node, ("embedding", "mapper", "discovery"))
         assert spin_until(node, lambda: all(p.get_subscription_count() >= 2
@@ -378,13 +370,7 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
                               diag[n].get("upstream_publishers") == "1"
                               for n in ("mapper", "discovery")), 120)
         for f in frames:
-            pubs["/camera/color/camera_info"].publish(camera_info_msg(f.intrinsics, f.stamp_ns,
-                                                                      "camera"))
-            pubs["/camera/color/image_raw"].publish(image_msg(f.rgb, "rgb8", f.stamp_ns,
-                                                              "camera"))
-            pubs["/camera/depth/image_raw"].publish(
-                image_msg(np.round(f.depth * 1000).astype(np.uint16), "16UC1", f.stamp_ns,
-                          "camera"))
+            publish_frame(pubs, f)
             spin_until(node, lambda: False, 0.1)   # the camera's pace, 10 Hz
         spin_until(node, lambda: len(labels) >= 1, 60)
         logs = {n: (tmp_path / f"{n}.log").read_text() for n in procs}
@@ -405,20 +391,18 @@ def test_the_reset_services_start_a_new_room(tmp_path):
     (it lost that room's first 10 frames against the old room's keyframes), and both
     say what they forgot."""
     import rosutil
-    from rosutil import apply_ros_env, ros_env, spin_until, start, stop
+    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
+                         spin_until, start, stop)
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
     from std_srvs.srv import Trigger
 
-    from std_msgs.msg import String
-
     from neurncd_ros.core.msgconv import class_table_from_text, pose_to_matrix
-    from neurncd_ros.nodes.common import (camera_info_msg, image_msg, latched_qos,
-                                          output_qos, sensor_qos)
+    from neurncd_ros.nodes.common import latched_qos, output_qos
 
     size = synth.SynthConfig(width=160, height=120, fps=10.0)
     old_room = list(synth.generate(1002, 6, size))
@@ -435,22 +419,14 @@ def test_the_reset_services_start_a_new_room(tmp_path):
         node.create_subscription(PoseStamped, "/camera/pose", lambda m: poses.setdefault(
             m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, pose_to_matrix(m)),
             output_qos(50))
-        pubs = {t: node.create_publisher(m, t, sensor_qos(10)) for t, m in (
-            ("/camera/color/image_raw", Image), ("/camera/depth/image_raw", Image),
-            ("/camera/color/camera_info", CameraInfo))}
+        pubs = camera_publishers(node)
         assert spin_until(node, lambda: all(p.get_subscription_count() >= 1
                                             for p in pubs.values()), 120)
 
         def play(frames) -> None:
             for f in frames:  # each frame until its pose comes (best effort may lose one)
                 for _ in range(20):
-                    pubs["/camera/color/camera_info"].publish(
-                        camera_info_msg(f.intrinsics, f.stamp_ns, "camera"))
-                    pubs["/camera/color/image_raw"].publish(
-                        image_msg(f.rgb, "rgb8", f.stamp_ns, "camera"))
-                    pubs["/camera/depth/image_raw"].publish(image_msg(
-                        np.round(f.depth * 1000).astype(np.uint16), "16UC1", f.stamp_ns,
-                        "camera"))
+                    publish_frame(pubs, f)
                     if spin_until(node, lambda: f.stamp_ns in poses, 3.0):
                         break
 
