@@ -474,6 +474,8 @@ def test_progress_bars_in_a_log_file_are_lines_with_messages_between(tmp_path):
     r = neurncd("synth", "--seed", 3, "--frames", 4, "--out", tmp_path / "s.db3", timeout=120)
     assert r.returncode == 0, r.stderr
     assert "\r" not in r.stderr and r.stderr.startswith("synth seed 3:"), repr(r.stderr)
+    assert r.stderr.splitlines()[-1].startswith("synth seed 3: 100%"), repr(r.stderr)
+    assert "4/4" in r.stderr.splitlines()[-1], repr(r.stderr)
     assert "as sqlite3" in r.stdout
     assert sorted(p.suffix for p in (tmp_path / "s.db3").iterdir()) == [".db3", ".yaml"]
 
