@@ -301,9 +301,7 @@ def _run_layout() -> str:
 
 
 def _progress(it, total: int, desc: str):
-    """A frame bar on stderr: cleared at its end on a terminal (the summary line follows),
-    left as its final n/n line in a log file, which would otherwise end at its last
-    throttled state (ProgressLines)."""
+    """A frame bar, cleared at its end on a terminal; in a log file its n/n line stays."""
     from tqdm import tqdm
     return tqdm(it, total=total, desc=desc, unit="frame", leave=not sys.stderr.isatty())
 

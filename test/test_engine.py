@@ -1164,4 +1164,14 @@ def test_the_engine_saves_the_map_it_loads(cfg, backbone, frames, tmp_path):
     assert engine.save_map(path) and (tmp_path / "room.pt.spec.json").is_file()
     again = OfflineEngine(cfg, backbone=backbone)
     assert again.load_map(path) == {"iterations": engine.mapper.iterations,
-                                    "keyframes": len(engine.mapper.buffer)}
+                                    "keyframes": len(engine.mapper.buffer),
+                                    "kept_settings": {}}
+    # A configuration that differs: the map keeps what it was built with and says which;
+    # how the mapper runs here (chunk sizes, threads) comes from the configuration.
+    changed = config.load(None, {"mapper.fast.rays_per_iteration": 512, "mapper.near": 0.1,
+                                 "keyframes.max_keyframes": 32, "mapper.train_chunk": 4096})
+    third = OfflineEngine(changed, backbone=backbone)
+    kept = third.load_map(path)["kept_settings"]
+    assert kept == {"mapper.near": [0.05, 0.1], "keyframes.max_keyframes": [64, 32],
+                    "mapper.fast.rays_per_iteration": [256, 512]}
+    assert third.mapper.cfg.near == 0.05 and third.mapper.cfg.train_chunk == 4096

@@ -129,6 +129,15 @@ def test_run_saves_the_map_and_the_next_run_continues_it(tmp_path):
     assert second["loaded"]["keyframes"] >= 1
     assert second["iterations"] > first["iterations"]
     assert f"continued map {map_file} ({first['iterations']} iterations" in r.stdout
+    assert second["loaded"]["kept_settings"] == {} and "keeps the settings" not in r.stdout
+    # a setting changed for a map that exists: the map keeps its own, and the run says so
+    r = neurncd("run", "--bag", tmp_path / "b.mcap", "--out", tmp_path / "c", *common,
+                "--set", "mapper.near=0.1")
+    assert r.returncode == 0, r.stdout + r.stderr
+    third = json.loads((tmp_path / "c" / "metrics.json").read_text())["map"]
+    assert third["loaded"]["kept_settings"] == {"mapper.near": [0.05, 0.1]}
+    assert "it keeps the settings it was built with: mapper.near 0.05 (configured 0.1)" \
+        in r.stdout
     first_state = json.loads((tmp_path / "a" / "metrics.json").read_text())["discovery_state"]
     second_state = json.loads((tmp_path / "b" / "metrics.json").read_text())["discovery_state"]
     assert first_state["continued_novel_ids"] is None and first_state["saved"]

@@ -66,7 +66,7 @@ def make_node():
     from ..core.engine.poses import PoseStage
     from ..core.engine.records import EmbeddingRecord, EmbeddingSpec
     from ..core.engine.worker import Worker
-    from ..core.field.mapper import Mapper
+    from ..core.field.mapper import Mapper, kept_settings_text
 
     class MapperNode(ReadOnlyConfig, Node):
         def __init__(self) -> None:
@@ -104,11 +104,17 @@ def make_node():
                 from ..core.torchfile import check_save_path
                 check_save_path(path, "mapper_node.map_path")
             if path and os.path.isfile(path):
-                self.stage.load(path, Mapper.load)  # a bad file: clear error, exit 2
+                # a bad file: clear error, exit 2
+                self.stage.load(path, lambda p: Mapper.load_configured(p, self.cfg))
                 self.spec = self.stage.spec
                 self.get_logger().info(f"loaded map {path} ({self.stage.mapper.iterations} "
                                        f"iterations, {len(self.stage.mapper.buffer)} "
                                        "keyframes)")
+                kept = self.stage.mapper.kept_settings(self.cfg)
+                if kept:
+                    self.get_logger().warning(
+                        f"the loaded map keeps the settings it was built with: "
+                        f"{kept_settings_text(kept)}; they apply to a new map only")
             self.frame_id = self.topics.camera_frame
             # Inputs converted by the callbacks, paired and admitted by the intake thread
             # (module doc); the oldest goes when the thread is sync_horizon_s behind.

@@ -122,11 +122,15 @@ class OfflineEngine:
     def load_map(self, path: str | Path) -> dict[str, int]:
         """Continue from a map the mapper node or ``neurncd run`` saved
         (``mapper_node.map_path``: the file and its ``.spec.json``), as the mapper node
-        does at start; returns its iterations and keyframes."""
+        does at start; returns its iterations, keyframes and ``kept_settings``: the settings
+        the map keeps from when it was built where the configuration differs,
+        ``{"mapper.near": [the map's, the configuration's]}`` (Mapper.kept_settings)."""
         from ..field.mapper import Mapper
 
-        self.mapping.load(path, Mapper.load)
-        return {"iterations": self.mapper.iterations, "keyframes": len(self.mapper.buffer)}
+        self.mapping.load(path, lambda p: Mapper.load_configured(p, self.cfg))
+        kept = self.mapper.kept_settings(self.cfg)
+        return {"iterations": self.mapper.iterations, "keyframes": len(self.mapper.buffer),
+                "kept_settings": {k: list(v) for k, v in kept.items()}}
 
     def save_map(self, path: str | Path) -> bool:
         """Save the map (the field and its keyframes) as the mapper node does, to ``path``
@@ -492,9 +496,14 @@ def summary(result: dict[str, Any]) -> str:
     lines.append(line + ("; " + "; ".join(extra) if extra else ""))
     m_info = result.get("map")
     if m_info:
+        from ..field.mapper import kept_settings_text
+
         was = m_info["loaded"]
         lines.append((f"continued map {m_info['path']} ({was['iterations']} iterations, "
-                      f"{was['keyframes']} keyframes)" if was else
+                      f"{was['keyframes']} keyframes"
+                      + (f"; it keeps the settings it was built with: "
+                         f"{kept_settings_text(was['kept_settings'])}"
+                         if was.get("kept_settings") else "") + ")" if was else
                       f"no map at {m_info['path']} yet: started a new one")
                      + (f"; saved it ({m_info['iterations']} iterations)" if m_info["saved"]
                         else "; nothing to save (no frame was embedded)"))

@@ -64,6 +64,18 @@ SAVE_VERSION = 2
 """Map file layout; 2 records the keyframe and backend sections beside the mapper's."""
 
 
+# Settings of how the mapper runs on this machine (threads, priority, chunk sizes), not of
+# the map it builds: a loaded map takes them from the configuration in force.
+RUNTIME_SETTINGS = ("render_chunk", "train_chunk", "yield_to_render", "train_nice",
+                    "num_threads")
+
+
+def kept_settings_text(kept: dict[str, Any]) -> str:
+    """``mapper.near 0.05 (configured 0.1), ...``: :meth:`Mapper.kept_settings` for a log
+    line (values as pairs or two-item lists, as in metrics.json)."""
+    return ", ".join(f"{k} {v[0]!r} (configured {v[1]!r})" for k, v in kept.items())
+
+
 class RenderCancelled(Exception):
     """A render stopped early because its ``cancel`` event was set."""
 
@@ -198,6 +210,28 @@ class Mapper:
         return cls(cfg.mapper, channels, keyframes=cfg.keyframes,
                    backend_cfg=cfg.section(f"mapper.{cfg.mapper.backend}"),
                    feature_channels=feature_channels)
+
+    @classmethod
+    def load_configured(cls, path: str | Path, cfg: Any) -> "Mapper":
+        """:meth:`load` with the settings of how the mapper runs on this machine
+        (:data:`RUNTIME_SETTINGS`) taken from ``cfg``, the configuration in force: the map
+        keeps every other setting it was built with (:meth:`kept_settings`)."""
+        return cls.load(path, **{k: getattr(cfg.mapper, k) for k in RUNTIME_SETTINGS})
+
+    def kept_settings(self, cfg: Any) -> dict[str, tuple[Any, Any]]:
+        """The settings in which this mapper differs from what ``cfg`` (a whole
+        configuration, as for :meth:`from_config`) would build: ``{"mapper.near": (the
+        map's, the configuration's)}``. A loaded map keeps the mapper, keyframes and backend
+        settings it was built with, so a changed value has no effect on it; the mapper node
+        and ``neurncd run`` say which."""
+        mine = {"mapper": self.cfg, "keyframes": self.keyframe_cfg,
+                f"mapper.{self.cfg.backend}": self.backend_cfg}
+        out: dict[str, tuple[Any, Any]] = {}
+        for name, built in mine.items():
+            have, want = to_dict(built), to_dict(cfg.section(name))
+            out.update({f"{name}.{k}": (have[k], want[k]) for k in have
+                        if k in want and have[k] != want[k]})
+        return out
 
     # ------------------------------------------------------------ model state
     def _init_model(self) -> None:
