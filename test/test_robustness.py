@@ -71,8 +71,8 @@ class Graph:
             self.pub[topic] = self.node.create_publisher(mtype, topic, qos)
         self.next_stamp = 100 * SEC
 
-    def _start(self, name: str):
-        args = ["-m", f"neurncd_ros.nodes.{name}", "--ros-args",
+    def _start(self, name: str, *extra: str):
+        args = ["-m", f"neurncd_ros.nodes.{name}", "--ros-args", *extra,
                 "-p", "mapper_node.save_period_s:=2.0",
                 "-p", f"mapper_node.map_path:={self.map_path}",
                 "-p", "embedding_node.log_throttle_s:=0.5",
@@ -260,7 +260,8 @@ def test_mapper_killed_restarts_from_its_saved_map_and_labels_resume(graph):
     g.spin(2.5)  # one more periodic save with what was learnt since
     g.procs["mapper"].send_signal(signal.SIGKILL)
     g.procs["mapper"].wait(timeout=30)
-    g.procs["mapper"] = g._start("mapper")
+    # restarted with another keyframe budget, which the loaded map does not take
+    g.procs["mapper"] = g._start("mapper", "-p", "keyframes.max_keyframes:=32")
     assert spin_until(g.node, lambda: "loaded map" in g.log("mapper"), 180), \
         g.log("mapper")[-2000:]
     mark = g.next_stamp
@@ -270,6 +271,8 @@ def test_mapper_killed_restarts_from_its_saved_map_and_labels_resume(graph):
     assert "Traceback" not in text
     it = int(text.split("loaded map")[1].split("(")[1].split(" iterations")[0])
     assert it > 0, "the restarted mapper carries on from a trained map"
+    assert ("the loaded map keeps the settings it was built with: keyframes.max_keyframes "
+            "64 (configured 32)") in text, text[-2000:]
 
 
 def test_truncated_bag_makes_replay_exit_nonzero_naming_it(tmp_path, frames):
