@@ -288,10 +288,28 @@ def test_truncated_bag_raises_naming_file(tmp_path, storage):
     with pytest.raises(BagError, match=str(tmp_path / "b")) as info:
         FrameReader(tmp_path / "b")
     assert f.name in str(info.value)
+    # what to do about it: the recording was cut off, and the tool that saves the rest
+    assert ("the recording was cut off" if storage == "mcap" else "truncated or damaged") \
+        in str(info.value)
+    assert ("mcap recover" if storage == "mcap" else ".recover") in str(info.value)
     with pytest.raises(BagError, match=str(f)):
         FrameReader(f)
     with pytest.raises(BagError, match="bag"):
         list(bag.iter_raw(tmp_path / "b"))
+
+
+def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):
+    """rosbag2 writes metadata.yaml when a recording ends: a folder without it got rosbags'
+    "Expected metadata file ... does not exist" alone. The error names the storage file,
+    which reads on its own, and `ros2 bag reindex`."""
+    bag.write_bag(tmp_path / "b", make_frames(3))
+    (tmp_path / "b" / "metadata.yaml").unlink()
+    f = bag_file(tmp_path / "b")
+    with pytest.raises(BagError, match="no metadata.yaml") as info:
+        FrameReader(tmp_path / "b")
+    assert f"give the storage file itself ({f})" in str(info.value)
+    assert f"ros2 bag reindex {tmp_path / 'b'}" in str(info.value)
+    assert len(list(FrameReader(f))) == 3
 
 
 def test_bogus_and_missing_bags(tmp_path):

@@ -336,8 +336,31 @@ def _open(path: Path) -> Any:
         reader.open()
     except Exception as err:
         raise BagError(f"{_where(path)}: not a readable rosbag2 bag ({type(err).__name__}: "
-                       f"{err}){_dataset_hint(path)}") from None
+                       f"{err}){_unreadable_hint(path, err)}") from None
     return reader
+
+
+def _unreadable_hint(path: Path, err: Exception) -> str:
+    """What a user can do about a bag rosbags cannot open: a recording cut off (an MCAP
+    file without its end: the recorder was killed, the disk filled, a copy stopped), a
+    folder without metadata.yaml, a dataset folder given as a bag."""
+    text = str(err)
+    if "end magic" in text or "MCAP footer" in text:
+        return ("; the file ends before its MCAP footer: the recording was cut off (recorder "
+                "killed, disk full, an interrupted copy). The MCAP CLI's `mcap recover "
+                "<file> -o fixed.mcap` rewrites the part that was written; then give "
+                "fixed.mcap here")
+    if "malformed" in text or "not a database" in text:
+        return ("; the SQLite file is truncated or damaged (recorder killed, interrupted "
+                "copy); `sqlite3 <file> .recover | sqlite3 fixed.db3` may save the part "
+                "that was written")
+    if path.is_dir() and not (path / "metadata.yaml").is_file():
+        files = sorted(p.name for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+        if files:
+            return (f"; the folder has no metadata.yaml (rosbag2 writes it when a recording "
+                    f"ends): give the storage file itself ({path / files[0]}) or run "
+                    f"`ros2 bag reindex {path}`")
+    return _dataset_hint(path)
 
 
 def _dataset_hint(path: Path) -> str:
