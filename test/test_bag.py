@@ -76,6 +76,33 @@ def test_round_trip_exact(tmp_path, storage, depth_encoding):
     assert_same(frames, list(FrameReader(bag_file(tmp_path / "b"))))
 
 
+@pytest.mark.parametrize("storage,mode", [("mcap", "MESSAGE"), ("mcap", "FILE"),
+                                          ("mcap", "STORAGE"), ("sqlite3", "MESSAGE"),
+                                          ("sqlite3", "FILE")])
+def test_a_zstd_compressed_recording_reads_exactly(tmp_path, storage, mode):
+    """`ros2 bag record --compression-mode file|message --compression-format zstd` and
+    MCAP's zstd chunks (storage presets zstd_fast, zstd_small): the same frames as the
+    plain bag, for run and info (FrameReader) and for the replay (iter_raw)."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, Writer
+
+    frames = make_frames()
+    bag.write_bag(tmp_path / "plain", frames, storage=storage)
+    w = Writer(tmp_path / "z", version=9, storage_plugin=bag._storage_plugin(storage))
+    w.set_compression(CompressionMode[mode], CompressionFormat.ZSTD)
+    w.open()
+    with Reader(tmp_path / "plain") as r:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=bag.typestore())
+                 for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    w.close()
+    assert_same(frames, list(FrameReader(tmp_path / "z")))
+    assert [m[:3] for m in bag.iter_raw(tmp_path / "z")] == \
+        [m[:3] for m in bag.iter_raw(tmp_path / "plain")]
+    assert [m[3] for m in bag.iter_raw(tmp_path / "z")] == \
+        [m[3] for m in bag.iter_raw(tmp_path / "plain")]
+
+
 def test_bgr8_and_no_ground_truth(tmp_path):
     frames = make_frames(3, gt=False)
     bag.write_bag(tmp_path / "b", frames, color_encoding="bgr8")
