@@ -108,9 +108,10 @@ class MapperNodeConfig:
                             "(discovery_node.work_width). Tuning seeds 500-503 at 640x480, "
                             "150 frames (neurncd run): all-class mIoU 78.07 at 320 against "
                             "78.53 at 640, rendering 4.4 times faster; live at 640x480 "
-                            "(bench/graph.py) label latency median 1.5 s against 8.7 s at "
-                            "640. render_scale applies on top of it; 0 = the frame's own "
-                            "width", lo=0, hi=8192, unit="px")
+                            "(bench/graph.py: graph_640x480.json, "
+                            "graph_640x480_work_width_640.json) label latency median 1.1 s "
+                            "against 8.7 s at 640. render_scale applies on top of it; "
+                            "0 = the frame's own width", lo=0, hi=8192, unit="px")
     max_in_flight: int = param(2, "views published and not yet labelled before the "
                                "renderer waits for discovery", lo=1, hi=100)
     in_flight_timeout_s: float = param(5.0, "a view not labelled within this is no longer "
@@ -173,8 +174,9 @@ class MapperNodeConfig:
                                "at 4, 80.95 / 85.44 / 69.30 at 8, 81.16 / 85.74 / 69.33 at 16, "
                                "81.15 at 24, 81.10 at 32 (8 before, chosen when the frame's own "
                                "view counted once: all 77.23 at 8, 76.87 at 16). 16 costs the "
-                               "stage a fifth more per view than 8 (bench/results/ncd.json, "
-                               "row fusion_unweighted: 92 against 78 ms)",
+                               "stage about a quarter more per view than 8 "
+                               "(bench/results/ncd.json at 8843fa0, rows neurncd and "
+                               "fusion_unweighted: 81 against 64 ms)",
                                lo=0, hi=256)
     depth_fusion: bool = param(True, "publish as the view's depth its measured depth averaged "
                                "with what the nearest keyframes (and recent frames) that see "
