@@ -102,6 +102,99 @@ def test_auto_chooses_odometry_on_the_clock_when_the_frames_stop(walk):
     assert st.poll() == [] and st.mode == "topic"
 
 
+def _play_choosing(frames, node, lag_s: float = 0.2):
+    """``frames`` at 30 Hz of a camera without poses through the mapper's pose and mapper
+    stages as the node wires them (nodes/mapper.py: _image, _embedding, _offer_poses), on
+    one clock: colour and depth of each frame as it comes, the embedding of every third
+    ``lag_s`` later (embedding_node.max_rate_hz 10). The mapper stage, the pose stage, the
+    stamps given a pose and those paired (colour, depth, embedding and pose)."""
+    from neurncd_ros.core.engine.mapping import MapperStage
+    from neurncd_ros.core.engine.offline import mapper_factory
+    from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
+
+    cfg = config.load(None, {"mapper.fast.rays_per_iteration": 64})
+    node = dataclasses.replace(cfg.mapper_node, pose_source="auto", **node)
+    clock = Clock()
+    health = Health("mapper", lambda level, text: None, node.log_throttle_s, clock=clock)
+    st = MapperStage(node, mapper_factory(cfg), health, online=False, clock=clock)
+    poses = PoseStage(node, cfg.odometry, cfg.topics, health, clock=clock)
+    deciding = poses.mode is None
+    st.set_pose_choice_open(deciding)
+    st.offer_info(frames[0].intrinsics)
+    spec = EmbeddingSpec(tuple(range(1, 10)))
+    rng = np.random.default_rng(0)
+    posed, paired = [], []
+
+    def hand_on(out) -> None:
+        nonlocal deciding
+        if deciding:
+            out = poses.poll() + out
+        for stamp, T in out:
+            posed.append(stamp)
+            paired.extend(j.frame.stamp_ns for j in st.offer("pose", stamp, T))
+        if deciding and poses.mode is not None and not poses.waiting:
+            deciding = False
+            st.set_pose_choice_open(False)
+
+    events = []  # (arrival time, order, stream, frame)
+    for i, f in enumerate(frames):
+        t = i / 30
+        events += [(t, 0, "depth", f), (t, 1, "color", f)]
+        if i % 3 == 0:
+            events.append((t + lag_s, 2, "embedding", f))
+    for t, _, stream, f in sorted(events, key=lambda e: e[:2]):
+        clock.t = t
+        if stream == "embedding":
+            rec = EmbeddingRecord(f.stamp_ns, rng.normal(size=f.depth.shape + (9,))
+                                  .astype(np.float32), spec)
+            paired.extend(j.frame.stamp_ns for j in st.offer("embedding", f.stamp_ns, rec))
+            hand_on(poses.offer_embedding(f.stamp_ns, st.intrinsics))
+        else:
+            value = f.depth if stream == "depth" else f.rgb
+            paired.extend(j.frame.stamp_ns for j in st.offer(stream, f.stamp_ns, value))
+            hand_on(poses.offer_image(stream, f.stamp_ns, value, st.intrinsics))
+    clock.t += 1.5  # the stream ended: the node's tick polls the choice once a second
+    hand_on([])
+    assert st.health.counts["frames_paired"] == len(paired)  # each admitted (no refusal)
+    return st, poses, posed, paired
+
+
+def test_auto_loses_no_frame_of_a_30_hz_camera_while_it_chooses(monkeypatch):
+    """A 30 Hz bag without poses: while pose_source auto chooses (3 s), the frames'
+    colour, depth and embeddings wait in the mapper's pairing for the poses the choice
+    hands on. It held 60 messages per input (sync_horizon_s of a 30 Hz camera): the first
+    31 colour and depth messages were pushed out before the choice, and the 11 embedded
+    frames among them were lost without a word (problems {}; the exit line's unpaired
+    inputs {"overflow": 62}); the pose stage kept the poses of the last 30 frames tracked
+    meanwhile (odometry_frames all tracks 90). Every frame given a pose is paired now; a
+    wait longer than the pairing holds is said."""
+    frames = list(synth.generate(1005, 150, synth.SynthConfig(width=160, height=120)))
+    embedded = [f.stamp_ns for f in frames[::3]]
+    st, poses, posed, paired = _play_choosing(frames, {})
+    assert poses.mode == "odometry" and st.sync.horizon_s == st.cfg.sync_horizon_s
+    assert st.sync.drops["overflow"] == 0, dict(st.sync.drops)
+    # Every frame the odometry gave a pose (all but one it lost, at 2 s) is paired, from
+    # the first one on; 39 were (the 10 embedded in the first 31 frames lost, and one).
+    assert len(posed) >= len(embedded) - 2 and posed[0] == embedded[0], posed
+    assert paired == posed, sorted(set(posed) - set(paired))
+    assert "pose_choice_overflow" not in st.health.problems
+    # odometry_frames all: every frame is tracked while the choice is open (90 of them),
+    # and the pose stage handed on the last 30: the first 20 embedded frames had no pose.
+    st, poses, posed, paired = _play_choosing(frames, {"odometry_frames": "all"})
+    assert len(posed) >= len(frames) - 2 and posed[0] == frames[0].stamp_ns
+    assert paired == [s for s in posed if s in set(embedded)], paired[:3]
+    assert st.sync.drops["overflow"] == 0
+    # The pairing holds sync_horizon_s + pose_auto_wait_s of a 30 Hz camera, the wait
+    # counted up to 10 s (CHOICE_HELD_S; 640x480 colour and depth, 2.15 MB a frame): a
+    # longer wait loses the first frames, and says so. With none of it counted, the
+    # pairing holds its 60 as before: the first 31 frames are lost, said now.
+    monkeypatch.setattr("neurncd_ros.core.engine.poses.CHOICE_HELD_S", 0.0)
+    st, poses, posed, paired = _play_choosing(frames, {})
+    assert st.sync.capacity == st.pairing_capacity == 60  # back to it once chosen
+    assert poses.mode == "odometry" and st.health.problems["pose_choice_overflow"] > 0
+    assert paired == [s for s in posed if s > frames[30].stamp_ns], paired[:3]
+
+
 def test_odometry_tracks_only_the_frames_that_were_embedded(walk):
     """odometry_frames embedded: a third of the frames embedded, a third tracked (the
     mapper uses no other); all: every colour+depth pair, embeddings or not."""

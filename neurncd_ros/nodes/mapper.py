@@ -88,12 +88,9 @@ def make_node():
             self.poses = PoseStage(self.node_cfg, self.cfg.odometry, self.topics, self.health,
                                    tf_available=TFMessage is not None)
             # While pose_source auto has not chosen (up to pose_auto_wait_s of frames), the
-            # frames' colour, depth and embeddings wait for the poses the choice hands on:
-            # at sync_horizon_s (2 s) alone the first frames expired before a choice at 3 s.
-            self._deciding = self.stage.pose_choice_open = self.poses.mode is None
-            if self._deciding:
-                self.stage.sync.horizon_s = (self.node_cfg.sync_horizon_s
-                                             + self.node_cfg.pose_auto_wait_s)
+            # frames' colour, depth and embeddings wait for the poses the choice hands on.
+            self._deciding = self.poses.mode is None
+            self.stage.set_pose_choice_open(self._deciding)
             self.pub_pose = None
             self._own_poses: dict[int, None] = {}  # stamps of the poses we published lately
             self._segment = 0
@@ -119,7 +116,7 @@ def make_node():
             # Inputs converted by the callbacks, paired and admitted by the intake thread
             # (module doc); the oldest goes when the thread is sync_horizon_s behind.
             self.intake: collections.deque = collections.deque(
-                maxlen=len(self.stage.STREAMS) * self.stage.sync.capacity)
+                maxlen=len(self.stage.STREAMS) * self.stage.pairing_capacity)
             self._intake_lock = threading.Lock()  # an intake job, or a map reset
             q = sensor_qos(self.node_cfg.queue_size)
             self.create_subscription(input_image_type(self.topics.color), self.topics.color,
@@ -222,10 +219,9 @@ def make_node():
                     self.pub_pose.publish(pose_msg(T, stamp, self.topics.world_frame))
                 self._check_segment()
                 self._offer("pose", stamp, T)
-            self.stage.pose_choice_open = self.poses.mode is None
             if self._deciding and self.poses.mode is not None and not self.poses.waiting:
                 self._deciding = False
-                self.stage.sync.horizon_s = self.node_cfg.sync_horizon_s
+                self.stage.set_pose_choice_open(False)
 
         def _check_segment(self) -> None:
             odo = self.poses.odometry

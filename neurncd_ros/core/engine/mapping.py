@@ -73,6 +73,7 @@ from ..frame import Frame
 from ..params import param
 from ..sync import StampSync, max_jump_param
 from .health import Health, no_camera_info, report_starved, sync_reporter
+from .poses import CAMERA_HZ, CHOICE_HELD_S, choice_frames
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to,
                     view_visibility)
@@ -227,7 +228,9 @@ class MapperNodeConfig:
     sync_max_jump_s: float = max_jump_param()
     queue_size: int = param(30, "subscription depth of the input topics; the pairing holds "
                             "up to max(2 queue_size, 30 x sync_horizon_s) messages of each "
-                            "input while they wait for their embedding", lo=1, hi=1000)
+                            "input while they wait for their embedding (while pose_source "
+                            "auto chooses, 30 x (sync_horizon_s + pose_auto_wait_s), the wait "
+                            "counted up to 10 s)", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
@@ -255,13 +258,12 @@ class MapperStage:
         self.online = online
         self._clock = clock
         self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
+        # Room for sync_horizon_s of a 30 Hz camera: at 1280x720 the embedding comes over
+        # a second after its frame, and a queue of 30 pushed every partner out first.
+        self.pairing_capacity = max(4, 2 * cfg.queue_size,
+                                    int(CAMERA_HZ * cfg.sync_horizon_s))
         self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
-                              # Room for sync_horizon_s of a 30 Hz camera: at 1280x720 the
-                              # embedding comes over a second after its frame, and a queue
-                              # of 30 pushed every partner out first.
-                              cfg.sync_horizon_s, capacity=max(4, 2 * cfg.queue_size,
-                                                               int(30 * cfg.sync_horizon_s)),
-                              clock=clock,
+                              cfg.sync_horizon_s, capacity=self.pairing_capacity, clock=clock,
                               on_anomaly=self._on_sync_anomaly,
                               max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
         self._report_sync = sync_reporter(self.health)
@@ -277,7 +279,8 @@ class MapperStage:
         self._fusion_inputs = FusionInputs()  # the render thread's alone
         self.stream_topics: dict[str, str] = {}  # stream -> topic, named in the reports
         # The node is still choosing where poses come from (pose_source auto): no pose yet
-        # is the wait for that choice, not a pose topic that never publishes.
+        # is the wait for that choice, not a pose topic that never publishes
+        # (set_pose_choice_open).
         self.pose_choice_open = False
         self.health.set_state("waiting", "no frame with an embedding yet")
 
@@ -363,6 +366,26 @@ class MapperStage:
             self._latest = None
         self.health.count("resets")
 
+    def set_pose_choice_open(self, choosing: bool) -> None:
+        """Whether ``pose_source`` auto is still choosing where poses come from (the node
+        says so from the pose stage). While it does, the frames' colour, depth and
+        embeddings wait for the poses the choice hands on: up to ``sync_horizon_s`` +
+        ``pose_auto_wait_s`` (at ``sync_horizon_s`` alone the first frames expired before
+        a choice at 3 s), and as many of them as a 30 Hz camera sends meanwhile
+        (:func:`.poses.choice_frames`: 150 per input at the defaults). Held to the 60 of
+        ``sync_horizon_s`` alone, the first second of a 30 Hz bag without poses was pushed
+        out before the choice: 11 of its 50 embedded frames lost without a word. A longer
+        wait than the pairing holds is said (``pose_choice_overflow``). Once chosen, the
+        pairing is back to ``sync_horizon_s`` and its own capacity (the frames held
+        meanwhile pair, or are superseded, as the poses come)."""
+        with self._lock:
+            self.pose_choice_open = bool(choosing)
+            self.sync.horizon_s = self.cfg.sync_horizon_s + (
+                self.cfg.pose_auto_wait_s if choosing else 0.0)
+            self.sync.capacity = self.pairing_capacity
+            if choosing:
+                self.sync.capacity = max(self.pairing_capacity, choice_frames(self.cfg))
+
     def _on_sync_anomaly(self, stream: str, reason: str, stamp_ns: int,
                          detail: str = "") -> None:
         """The pairing's reports (called by ``self.sync``, under ``self._lock``). On a
@@ -377,7 +400,18 @@ class MapperStage:
         """One input message (EmbeddingRecord, rgb, depth or 4x4 pose); the frames it
         completed that were admitted and queued for rendering."""
         with self._lock:
+            overflows = self.sync.drops["overflow"]
             groups = self.sync.add(stream, stamp_ns, value)
+            overflows = self.sync.drops["overflow"] - overflows
+            choosing, held = self.pose_choice_open, self.sync.capacity
+        if overflows and choosing:  # a frame lost while the poses were not there yet
+            self.health.problem(
+                "pose_choice_overflow", f"{stream}: the oldest message is dropped: more than "
+                f"{held} wait for their pose while pose_source auto chooses where poses come "
+                f"from (the mapper holds sync_horizon_s + pose_auto_wait_s of a "
+                f"{CAMERA_HZ:g} Hz camera meanwhile, the wait counted up to "
+                f"{CHOICE_HELD_S:g} s): set mapper_node.pose_source, or a shorter "
+                "pose_auto_wait_s")
         refused = [s for s in ("color", "depth") if s in self.health.refused()]
         starved = [s for s in self.sync.starved() if s != "pose" or not self.pose_choice_open]
         report_starved(self.health, starved, self.cfg.sync_tolerance_ms,

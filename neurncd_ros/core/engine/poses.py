@@ -42,6 +42,24 @@ from .health import Health, no_camera_info, sync_reporter
 
 SOURCES = ("auto", "topic", "tf", "odometry")
 
+CAMERA_HZ = 30.0
+"""The camera rate the mapper's pairing is sized for (a 30 Hz RGB-D camera)."""
+
+CHOICE_HELD_S = 10.0
+"""pose_source auto: at most this much of ``pose_auto_wait_s`` of frames is held for the
+choice (:func:`choice_frames`); frames beyond it are dropped, oldest first, and said."""
+
+
+def choice_frames(cfg) -> int:
+    """Frames of a ``CAMERA_HZ`` camera that come while ``pose_source`` auto chooses, and
+    that the mapper holds until the choice hands their poses on: ``sync_horizon_s`` +
+    ``pose_auto_wait_s`` (at most ``CHOICE_HELD_S`` of the wait) of them; 150 at the
+    defaults. Held per input as images: colour (rgb8) and depth (float32 metres) take
+    2.15 MB a frame at 640x480, so 320 MB at the defaults and at most 775 MB (360 frames,
+    a wait of 10 s or more); at 1280x720, 6.5 MB a frame, 970 MB at the defaults. The
+    embeddings come at the embedding node's rate (a third of them at its max_rate_hz 10)."""
+    return int(CAMERA_HZ * (cfg.sync_horizon_s + min(cfg.pose_auto_wait_s, CHOICE_HELD_S)))
+
 
 class PoseStage:
     """Turns pose messages, /tf or the images into (stamp, camera-to-world) pairs."""
@@ -77,7 +95,12 @@ class PoseStage:
             maxlen=8 * max(4, node_cfg.queue_size))
         self._wanted: collections.deque = collections.deque(maxlen=max(4, node_cfg.queue_size))
         self._last_tracked: int | None = None
-        self._early: list[tuple[int, np.ndarray]] = []   # tracked while auto was undecided
+        # Tracked while auto was undecided, handed on once it chose odometry: the poses of
+        # every frame of the wait (odometry_frames all tracks each frame of a 30 Hz camera;
+        # 128 bytes a pose). Kept to 30 before (the size of _wanted), the first 60 frames
+        # of a 30 Hz camera had no pose after a choice at 3 s with odometry_frames all.
+        self._early: list[tuple[int, np.ndarray]] = []
+        self._early_max = choice_frames(node_cfg)
         self._first_frame: float | None = None
         self._topic_seen = False
         if self.mode is not None:
@@ -252,7 +275,7 @@ class PoseStage:
             return []
         mode = self._decide()
         if mode is None:
-            self._early = (self._early + [(stamp, pose)])[-self._wanted.maxlen:]
+            self._early = (self._early + [(stamp, pose)])[-self._early_max:]
             return []
         if mode != "odometry":
             return []
