@@ -1075,6 +1075,39 @@ def test_mapper_stage_drops_a_far_future_stamp_and_reports_a_frame_without_pose(
     assert st.health.problems["unpaired"] == 2
 
 
+def test_mapper_stage_holds_the_embeddings_that_come_before_their_spec(cfg):
+    """The embedding messages that came before their spec (the node cannot read them yet)
+    are held as they came, in order, as long as their frames wait for them
+    (sync_horizon_s) and as many as the pairing holds of an input; beyond either they are
+    refused as no_spec, saying which. They were all refused."""
+    clock, lines = Clock(), []
+    node_cfg = dataclasses.replace(cfg.mapper_node, queue_size=2, sync_horizon_s=0.1,
+                                   log_throttle_s=0.0)
+    st = MapperStage(node_cfg, mapper_factory(cfg), online=False, clock=clock)
+    st.health._log = lambda level, text: lines.append(text)
+    st.spec_topic = "/neurncd/embedding/spec"
+    assert st.sync.capacity == 4
+    for k in range(6):
+        st.hold_for_spec(k, f"message {k}")
+    assert st.held_for_spec == 4 and st.health.problems["no_spec"] == 2
+    assert lines[0] == ("embedding 0 skipped: its spec has not come on /neurncd/embedding/spec "
+                        "yet, and more than 4 embeddings wait for it (the oldest is dropped)")
+    clock.t = 0.05
+    assert st.release_for_spec() == [f"message {k}" for k in range(2, 6)]
+    assert st.held_for_spec == 0 and st.release_for_spec() == []
+    # A spec that never comes: refused once their frames no longer wait for them.
+    st.hold_for_spec(10, "late")
+    clock.t = 0.1
+    st.expire_held()
+    assert st.held_for_spec == 1
+    clock.t = 0.2
+    st.expire_held()
+    assert st.held_for_spec == 0 and st.health.problems["no_spec"] == 3
+    assert lines[-1].startswith("embedding 10 skipped: its spec did not come on "
+                                "/neurncd/embedding/spec within 0.1 s of it"), lines[-1]
+    assert "embedding" in st.health.refused()  # a starved report names it refused
+
+
 def test_a_bag_played_again_pairs_at_once_and_frees_the_views_in_flight(cfg, backbone,
                                                                         frames):
     """The same bag played a second time into a running mapper: the messages whose stamps

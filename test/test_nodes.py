@@ -562,6 +562,64 @@ def test_mapper_says_when_another_publishers_poses_are_ignored(ros_node, tmp_pat
     assert code == 0, text[-2000:]
 
 
+def test_mapper_pairs_the_embeddings_that_came_before_their_spec(ros_node, tmp_path):
+    """At start the embedding node's latched spec and its first embeddings reach the mapper
+    in any order over DDS. An embedding that came before the spec was refused (`no_spec`)
+    and its frame lost: the first frames of a run. They are held until the spec comes, and
+    paired then."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    from neurncd_ros import synth
+    from neurncd_ros.core.engine.records import EmbeddingSpec
+    from neurncd_ros.nodes.common import image_msg, latched_qos, output_qos, pose_msg
+
+    node, domain = ros_node
+    frames = list(synth.generate(1004, 6, synth.SynthConfig(width=96, height=72)))
+    log = tmp_path / "mapper.log"
+    # A long sync_horizon_s: the frames wait for their embeddings whatever the test's pace.
+    proc = start(["-m", "neurncd_ros.nodes.mapper", "--ros-args",
+                  "-p", "mapper_node.pose_source:=topic",
+                  "-p", "mapper_node.sync_horizon_s:=30.0"], ros_env(domain), log)
+    try:
+        diag = diagnostics_of(node, ("mapper",))
+        pubs = {**camera_publishers(node),
+                "/camera/pose": node.create_publisher(PoseStamped, "/camera/pose",
+                                                      output_qos()),
+                "/neurncd/embedding": node.create_publisher(Image, "/neurncd/embedding",
+                                                            output_qos())}
+        assert spin_until(node, lambda: "mapper" in diag and all(
+            p.get_subscription_count() >= 1 for p in pubs.values()), 120), log.read_text()
+        rng = np.random.default_rng(0)
+        for f in frames:  # as the camera, the embedding node and a SLAM send them
+            publish_frame(pubs, f)
+            pubs["/camera/pose"].publish(pose_msg(f.pose, f.stamp_ns, "world"))
+            emb = rng.normal(size=f.depth.shape + (9,)).astype(np.float32)
+            pubs["/neurncd/embedding"].publish(image_msg(emb, "32FC9", f.stamp_ns, "camera"))
+
+        def value(key: str) -> int:
+            return int(diag["mapper"].get(key, 0))
+
+        # Every embedding has reached the mapper before the spec: held for it (refused).
+        assert spin_until(node, lambda: value("embeddings_held_for_spec") == len(frames)
+                          or value("problem.no_spec") >= len(frames), 60), \
+            (diag["mapper"], log.read_text()[-3000:])
+        spec = node.create_publisher(String, "/neurncd/embedding/spec", latched_qos())
+        spec.publish(String(data=EmbeddingSpec(tuple(range(1, 10)),
+                                               backbone="test").to_json()))
+        assert spin_until(node, lambda: value("frames_paired") >= len(frames), 60), \
+            (diag["mapper"], log.read_text()[-3000:])
+        assert spin_until(node, lambda: value("embeddings_held_for_spec") == 0, 10)
+        assert value("frames_paired") == len(frames) and value("keyframes") >= 1
+        assert "problem.no_spec" not in diag["mapper"], diag["mapper"]
+        assert proc.poll() is None, log.read_text()
+    finally:
+        code = stop(proc)
+    assert "skipped" not in log.read_text(), log.read_text()[-3000:]
+    assert code == 0, log.read_text()[-2000:]
+
+
 def _compressed_frame(stamp_ns: int, w: int = 96, h: int = 72, broken: bool = False):
     """Colour as image_transport's compressed (JPEG) and depth as its compressedDepth (a
     12-byte header, then a PNG of millimetres), built here with cv2."""

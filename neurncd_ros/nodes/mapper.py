@@ -157,6 +157,7 @@ def make_node():
                                                  self.topics.embedding], health=self.health)
             self.stage.stream_topics = {s: self.resolve_topic_name(getattr(self.topics, s))
                                         for s in ("color", "depth", "embedding", "pose")}
+            self.stage.spec_topic = self.resolve_topic_name(self.topics.embedding_spec)
             wall_timer(self, 1.0, self.on_tick)
             if self.node_cfg.map_path and self.node_cfg.save_period_s > 0:
                 wall_timer(self, self.node_cfg.save_period_s, self.autosave)
@@ -310,12 +311,12 @@ def make_node():
                                     "embeddings are refused (reset the map to change backbone)")
             self.spec = spec
             self.pub_spec.publish(String(data=spec.to_json()))
+            for held in self.stage.release_for_spec():  # those that came before it
+                self.on_embedding(held)
 
         def on_embedding(self, msg) -> None:
-            if self.spec is None:
-                reason = f"its spec has not arrived on {self.topics.embedding_spec} yet"
-                self.health.refuse("embedding", "no_spec", f"embedding skipped: {reason}",
-                                   reason, stamp_of(msg))
+            if self.spec is None:  # held for it (the latched spec may come second)
+                self.stage.hold_for_spec(header_ns(msg), msg)
                 return
             arr = self._convert("embedding", msgconv.image_to_array, msg,
                                 self.topics.embedding)
@@ -367,15 +368,18 @@ def make_node():
             return True
 
         def on_tick(self) -> None:
-            self.input_watch.check(self.stage.sync.received + len(self.intake))
+            self.stage.expire_held()
+            held = self.stage.held_for_spec
+            self.input_watch.check(self.stage.sync.received + len(self.intake) + held)
             if not self.stage.check_training():
                 self.worker.cancel.set()  # no stale output after the field died
             if self._deciding:  # a stream that ended within pose_auto_wait_s is decided too
                 self._queue(lambda: self._offer_poses(self.poses.poll()))
             backlog = len(self.intake) + int(self.intake_worker.busy)
             self.health.gauge("pending", self.stage.pending + int(self.worker.busy) + backlog
-                              + self.poses.waiting)
+                              + self.poses.waiting + held)
             self.health.gauge("intake_backlog", backlog)
+            self.health.gauge("embeddings_held_for_spec", held)
             # Whether the embedding node is seen yet: bringup starts a bag only then.
             self.health.gauge("upstream_publishers", self.count_publishers(self.topics.embedding))
             self.health.gauge("keyframes_in_map", len(self.stage.mapper.buffer)
@@ -423,7 +427,7 @@ def make_node():
                     self.get_logger().info(f"saved map to {self.node_cfg.map_path}")
                 except (OSError, RuntimeError, ValueError) as err:
                     self.get_logger().error(f"could not save the map: {err}")
-            left = len(self.intake)
+            left = len(self.intake) + self.stage.held_for_spec
             self.get_logger().info(self.stage.summary() + f", problems "
                                    f"{dict(self.health.problems)}; {self.poses.summary()}"
                                    + (f"; {left} input message{'s' * (left != 1)} not yet "

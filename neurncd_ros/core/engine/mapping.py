@@ -282,6 +282,11 @@ class MapperStage:
         # is the wait for that choice, not a pose topic that never publishes
         # (set_pose_choice_open).
         self.pose_choice_open = False
+        # Embedding messages that came before their spec, as they came (hold_for_spec), and
+        # the topic the spec comes on (named in the reports).
+        self._before_spec: collections.deque = collections.deque()
+        self._before_spec_lock = threading.Lock()
+        self.spec_topic = "the embedding spec topic"
         self.health.set_state("waiting", "no frame with an embedding yet")
 
     # ------------------------------------------------------------ the field
@@ -365,6 +370,70 @@ class MapperStage:
             self._keyframe_jobs.clear()
             self._latest = None
         self.health.count("resets")
+
+    def hold_for_spec(self, stamp_ns: int, message: Any) -> None:
+        """An embedding message that came before its spec, which says how to read it: held
+        as it came (the node cannot convert or check it yet) until :meth:`release_for_spec`.
+        With DDS the embedding node's latched spec and its first embeddings reach the
+        mapper in any order at start; each embedding that came first was refused
+        (``no_spec``), and the first frames of a run were lost. It is held as long as the
+        frames it pairs with wait for it (``sync_horizon_s``, and ``pose_auto_wait_s``
+        more while pose_source auto chooses) and as many as the pairing holds of each
+        input (``sync.capacity``: 60 at the defaults, 2.8 MB each at 320x240x9 float32;
+        the pairing would hold as many of them once converted); beyond either it is
+        refused as ``no_spec``, saying which."""
+        now = self._clock()
+        with self._before_spec_lock:
+            gone = self._expired_held(now)
+            self._before_spec.append((int(stamp_ns), now, message))
+            over = []
+            while len(self._before_spec) > self.sync.capacity:
+                over.append(self._before_spec.popleft()[0])
+        self._refuse_held(gone)
+        self._refuse_held(over, overflow=True)
+
+    def release_for_spec(self) -> list:
+        """The spec has come: the embedding messages held for it, oldest first, to be read
+        now as if they had just come (those held too long are refused first)."""
+        self.expire_held()
+        with self._before_spec_lock:
+            out = [m for _, _, m in self._before_spec]
+            self._before_spec.clear()
+        return out
+
+    def expire_held(self) -> None:
+        """Refuse (``no_spec``) the embeddings held longer than their frames wait (the
+        node's once-a-second tick: a spec that never comes)."""
+        with self._before_spec_lock:
+            gone = self._expired_held(self._clock())
+        self._refuse_held(gone)
+
+    @property
+    def held_for_spec(self) -> int:
+        """Embedding messages waiting for their spec."""
+        with self._before_spec_lock:
+            return len(self._before_spec)
+
+    def _expired_held(self, now: float) -> list[int]:
+        """Take the held embeddings older than the pairing's horizon (caller holds the
+        lock); their stamps."""
+        gone = []
+        while self._before_spec and now - self._before_spec[0][1] > self.sync.horizon_s:
+            gone.append(self._before_spec.popleft()[0])
+        return gone
+
+    def _refuse_held(self, stamps: list[int], overflow: bool = False) -> None:
+        if overflow:
+            reason = (f"its spec has not come on {self.spec_topic} yet, and more than "
+                      f"{self.sync.capacity} embeddings wait for it (the oldest is dropped)")
+        else:
+            reason = (f"its spec did not come on {self.spec_topic} within "
+                      f"{self.sync.horizon_s:g} s of it, as long as its frame waits "
+                      "(sync_horizon_s; is the embedding node running, and its spec topic "
+                      "the same?)")
+        for stamp in stamps:
+            self.health.refuse("embedding", "no_spec", f"embedding {stamp} skipped: {reason}",
+                               reason, stamp)
 
     def set_pose_choice_open(self, choosing: bool) -> None:
         """Whether ``pose_source`` auto is still choosing where poses come from (the node
