@@ -14,15 +14,32 @@ def results_dir(quick: bool) -> Path:
     return REPO / "bench" / "results" / ("quick" if quick else "")
 
 
-def commit() -> str:
-    """Short hash of HEAD, or 'uncommitted' when there is none."""
+def _git(*args: str) -> str | None:
     try:
-        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
-                             capture_output=True, text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() \
-            else "uncommitted"
+        out = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True,
+                             timeout=10)
     except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() if out.returncode == 0 else None
+
+
+def _head_at_start() -> str:
+    head = _git("rev-parse", "--short", "HEAD")
+    if not head:
         return "uncommitted"
+    changed = _git("status", "--porcelain", "--untracked-files=no")
+    return f"{head}-dirty" if changed else head
+
+
+# Taken when a benchmark starts (it imports this module first): a commit made while it
+# runs (a long bench beside other work) is not the code it measured.
+_AT_START = _head_at_start()
+
+
+def commit() -> str:
+    """Short hash of HEAD when the benchmark started, ``<hash>-dirty`` when tracked files
+    had uncommitted changes then, or 'uncommitted' outside a git checkout."""
+    return _AT_START
 
 
 def parse_sweep(spec: str) -> tuple[str, list[tuple[str, dict, object]]]:

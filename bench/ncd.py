@@ -519,7 +519,8 @@ def sweep(args: argparse.Namespace, base: config.Config, frames: int, n_tune: in
     out = {"param": key, "tune_seeds": list(seeds.TUNE[:n_tune]), "frames_per_scene": frames,
            "set": args.set, "rows": rows, "commit": commit()}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"ncd_sweep_{key.replace('.', '_')}{_slug(args.set)}.json"
+    path = RESULTS / (f"ncd_sweep_{key.replace('.', '_')}{_slug(args.set)}"
+                      + (f"_frames{frames}" if frames != 150 else "") + ".json")
     path.write_text(json.dumps(out, indent=1))
     print(f"{key} on tuning seeds {out['tune_seeds']} ({frames} frames each), percent")
     print(f"{'value':>10s} {'all':>7s} {'known':>7s} {'novel':>7s} {'id stab':>8s} {'found':>7s}")
@@ -563,7 +564,8 @@ def main() -> None:
                     help="only score one parameter over these values on the tuning scenes "
                          "(a discovery one on the cached views; one of the engine, e.g. "
                          "keyframes.* or mapper_node.*, renders the scenes again per value; "
-                         "bench/results/ncd_sweep_<section>_<key>[_<set>].json), then stop")
+                         "bench/results/ncd_sweep_<section>_<key>[_<set>][_frames<N>].json), "
+                         "then stop")
     args = ap.parse_args()
     RESULTS = results_dir(args.quick)
     RESULTS.mkdir(parents=True, exist_ok=True)
