@@ -990,12 +990,13 @@ def test_a_learnt_field_renders_the_features_it_distils(frames):
 def test_mapper_stage_names_the_stream_that_never_arrives(cfg, frames):
     """Colour, depth and pose come but no embedding: the stage says which stream it waits
     for and what to check, instead of rendering nothing in silence."""
-    # A short horizon keeps the pairing's queues short (it holds sync_horizon_s of a 30 Hz
-    # camera): 12 frames fill them, as seconds of a camera would.
+    # A short horizon keeps the pairing's queues short (it holds sync_horizon_s of a 90 Hz
+    # camera, 9 images, and of a 1 kHz pose topic): 16 frames fill them, as seconds of a
+    # camera would.
     st = _stage(cfg, queue_size=4, sync_horizon_s=0.1)
     logged = []
     st.health._log = lambda level, text: logged.append(text)
-    for f in frames[:12]:
+    for f in frames[:16]:
         st.offer("color", f.stamp_ns, f.rgb)
         st.offer("depth", f.stamp_ns, f.depth)
         assert st.offer("pose", f.stamp_ns, f.pose) == []
@@ -1086,14 +1087,14 @@ def test_mapper_stage_holds_the_embeddings_that_come_before_their_spec(cfg):
     st = MapperStage(node_cfg, mapper_factory(cfg), online=False, clock=clock)
     st.health._log = lambda level, text: lines.append(text)
     st.spec_topic = "/neurncd/embedding/spec"
-    assert st.sync.capacity == 4
-    for k in range(6):
+    assert st.sync.capacity == 9  # 0.1 s of a 90 Hz camera
+    for k in range(11):
         st.hold_for_spec(k, f"message {k}")
-    assert st.held_for_spec == 4 and st.health.problems["no_spec"] == 2
+    assert st.held_for_spec == 9 and st.health.problems["no_spec"] == 2
     assert lines[0] == ("embedding 0 skipped: its spec has not come on /neurncd/embedding/spec "
-                        "yet, and more than 4 embeddings wait for it (the oldest is dropped)")
+                        "yet, and more than 9 embeddings wait for it (the oldest is dropped)")
     clock.t = 0.05
-    assert st.release_for_spec() == [f"message {k}" for k in range(2, 6)]
+    assert st.release_for_spec() == [f"message {k}" for k in range(2, 11)]
     assert st.held_for_spec == 0 and st.release_for_spec() == []
     # A spec that never comes: refused once their frames no longer wait for them.
     st.hold_for_spec(10, "late")

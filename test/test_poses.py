@@ -184,15 +184,137 @@ def test_auto_loses_no_frame_of_a_30_hz_camera_while_it_chooses(monkeypatch):
     assert len(posed) >= len(frames) - 2 and posed[0] == frames[0].stamp_ns
     assert paired == [s for s in posed if s in set(embedded)], paired[:3]
     assert st.sync.drops["overflow"] == 0
-    # The pairing holds sync_horizon_s + pose_auto_wait_s of a 30 Hz camera, the wait
-    # counted up to 10 s (CHOICE_HELD_S; 640x480 colour and depth, 2.15 MB a frame): a
-    # longer wait loses the first frames, and says so. With none of it counted, the
-    # pairing holds its 60 as before: the first 31 frames are lost, said now.
+    # The pairing holds sync_horizon_s + pose_auto_wait_s of a camera of up to
+    # MAX_CAMERA_HZ, the wait counted up to 10 s (CHOICE_HELD_S; 640x480 colour and depth,
+    # 2.15 MB a frame): a longer wait loses the first frames, and says so. With none of it
+    # counted, and sized for 30 Hz, the pairing holds its 60 as before: the first 31
+    # frames are lost, said now.
     monkeypatch.setattr("neurncd_ros.core.engine.poses.CHOICE_HELD_S", 0.0)
+    monkeypatch.setattr("neurncd_ros.core.engine.poses.MAX_CAMERA_HZ", 30.0)
     st, poses, posed, paired = _play_choosing(frames, {})
     assert st.sync.capacity == st.pairing_capacity == 60  # back to it once chosen
     assert poses.mode == "odometry" and st.health.problems["pose_choice_overflow"] > 0
     assert paired == [s for s in posed if s > frames[30].stamp_ns], paired[:3]
+
+
+def _play_camera(hz: float, seconds: float = 6.0, pose_hz: float | None = None,
+                 choose_at_s: float | None = None, burst_hz: float | None = None):
+    """A camera of ``hz`` through the mapper stage's pairing on one clock, as the node hands
+    its inputs on: colour and depth of each frame as it comes, and its pose (or a pose
+    topic of ``pose_hz``, a motion capture's); the embedding of each frame the embedding
+    node's rate gate at max_rate_hz 10 takes (every 2nd frame of 15 Hz, 3rd of 30, 6th of
+    60, 9th of 90) 1.0-1.5 s after it, in stamp order. ``choose_at_s``: pose_source auto
+    chooses odometry then, having tracked each embedded frame as its embedding came, and
+    hands those poses on (then each one as its embedding comes). ``burst_hz``: colour,
+    depth and pose at that rate instead, without embeddings (a driver gone wild). No
+    field: the stamps embedded, the stamps paired, and the stage."""
+    from neurncd_ros.core.camera import Intrinsics
+    from neurncd_ros.core.engine.mapping import MapperStage
+    from neurncd_ros.core.engine.records import EmbeddingRecord, EmbeddingSpec
+
+    cfg = config.default()
+    clock = Clock()
+    health = Health("mapper", lambda level, text: None, 5.0, clock=clock)
+    st = MapperStage(cfg.mapper_node, lambda *a: None, health, online=False, clock=clock)
+    paired: list[int] = []
+    st.admit = lambda frame, record: paired.append(frame.stamp_ns)
+    st.offer_info(Intrinsics(8.0, 8.0, 4.0, 3.0, 8, 6))
+    st.set_pose_choice_open(choose_at_s is not None)
+    rgb, depth = np.zeros((6, 8, 3), np.uint8), np.ones((6, 8), np.float32)
+    spec = EmbeddingSpec(tuple(range(1, 10)))
+    rng = np.random.default_rng(7)
+    events, embedded, arrival = [], [], 0.0  # (arrival time, order, stream, stamp)
+    rate = burst_hz or hz
+    for i in range(int(seconds * rate)):
+        t, stamp = i / rate, 10**9 + round(i * 1e9 / rate)
+        events += [(t, 0, "color", stamp), (t, 1, "depth", stamp)]
+        if pose_hz is None and choose_at_s is None:
+            events.append((t, 2, "pose", stamp))
+        if burst_hz is None and (not embedded or stamp - embedded[-1] >= 0.09e9):
+            embedded.append(stamp)
+            arrival = max(arrival, t + rng.uniform(1.0, 1.5))  # the node embeds in turn
+            events.append((arrival, 3, "embedding", stamp))
+    for j in range(int(seconds * (pose_hz or 0))):
+        events.append((j / pose_hz, 2, "pose", 10**9 + round(j * 1e9 / pose_hz)))
+    tracked = []  # odometry's poses while auto chooses
+    for t, _, stream, stamp in sorted(events, key=lambda e: e[:2]):
+        clock.t = t
+        if choose_at_s is not None and t >= choose_at_s and st.pose_choice_open:
+            for s in tracked:
+                st.offer("pose", s, np.eye(4))
+            st.set_pose_choice_open(False)
+        value = {"color": rgb, "depth": depth, "pose": np.eye(4),
+                 "embedding": EmbeddingRecord(stamp, np.zeros((6, 8, 9), np.float32), spec)}
+        st.offer(stream, stamp, value[stream])
+        if stream == "embedding" and choose_at_s is not None:
+            if st.pose_choice_open:
+                tracked.append(stamp)
+            else:
+                st.offer("pose", stamp, np.eye(4))
+    return embedded, paired, st
+
+
+@pytest.mark.parametrize("choose_at_s", [None, 3.0], ids=["poses", "auto_choosing"])
+@pytest.mark.parametrize("hz", [15, 30, 60, 90])
+def test_the_mapper_pairs_every_embedded_frame_of_a_camera_of_up_to_90_hz(hz, choose_at_s):
+    """A RealSense at 60 or 90 fps (some drivers at 15): the embedding of a frame comes
+    1.0-1.5 s after it, and the pairing holds the colour and depth of every frame
+    meanwhile. Sized for a 30 Hz camera (60 messages per input), it pushed them out first:
+    of 60 embedded frames in 6 s, 60 Hz paired 10, 90 Hz 6 (overflow drops 900 and
+    1440); while pose_source auto chose (3 s, 150 messages), 60 Hz paired 28, 90 Hz 19.
+    15 and 30 Hz paired all, as they do now."""
+    embedded, paired, st = _play_camera(hz, choose_at_s=choose_at_s)
+    assert paired == embedded and len(embedded) >= 40
+    assert st.sync.drops["overflow"] == 0, dict(st.sync.drops)
+    assert "pose_choice_overflow" not in st.health.problems
+
+
+@pytest.mark.parametrize("pose_hz", [120, 360])
+def test_the_mapper_pairs_every_embedded_frame_with_a_motion_capture_pose_topic(pose_hz):
+    """Poses from a motion capture (120-360 Hz) beside a 30 Hz camera: the pose input held
+    as many messages as the images (60, half a second at 120 Hz), and the poses of frames
+    whose embedding came a second later were pushed out: 120 Hz paired 5 of 60 embedded
+    frames, 360 Hz 1. It holds sync_horizon_s of a 1 kHz pose topic now (under 1 MB)."""
+    embedded, paired, st = _play_camera(30, pose_hz=pose_hz)
+    assert paired == embedded and st.sync.drops["overflow"] == 0, dict(st.sync.drops)
+    assert st.sync.capacity_of("pose") == 2000 and st.sync.capacity_of("color") == 180
+
+
+def test_the_mapper_pairing_stays_bounded_under_a_1_khz_burst_of_stamps():
+    """However fast the stamps come (a driver gone wild: 1 kHz of colour, depth and pose,
+    no embedding), each input holds at most its capacity: 180 colour and depth images at
+    the defaults (387 MB at 640x480), 2000 poses; 450 images while pose_source auto
+    chooses (968 MB at 640x480)."""
+    from neurncd_ros.core.engine import poses
+
+    cfg = config.default().mapper_node
+    assert poses.pairing_frames(cfg) == 180 and poses.choice_frames(cfg) == 450
+    for choose_at_s, cap in ((None, 180), (10.0, 450)):
+        _, paired, st = _play_camera(90, seconds=3.0, burst_hz=1000, choose_at_s=choose_at_s)
+        assert paired == [] and st.sync.drops["overflow"] > 0
+        held = {s: st.sync.pending(s) for s in st.STREAMS}
+        assert held["color"] == held["depth"] == cap, held
+        assert held["pose"] <= st.sync.capacity_of("pose") == 2000, held
+        assert st.sync.capacity == cap
+
+
+def test_auto_gives_the_first_seconds_of_a_90_hz_camera_their_tf_poses():
+    """/tf links the frames 2.9 s into a 90 Hz stream (pose_source auto waits 3 s for it):
+    every frame before it is looked up. The pose stage kept the stamps of the last 120
+    (4 queue_size) and the first 141 frames went without a pose, while the mapper held
+    their colour, depth and embedding for it; it keeps what the mapper holds now."""
+    cfg = config.default()
+    clock = Clock()
+    st = PoseStage(cfg.mapper_node, cfg.odometry, cfg.topics, Health("mapper", None, 1.0),
+                   clock=clock)
+    depth = np.ones((2, 2), np.float32)
+    stamps = [10**9 + round(i * 1e9 / 90) for i in range(int(2.9 * 90))]
+    for i, stamp in enumerate(stamps):
+        clock.t = i / 90
+        assert st.offer_image("depth", stamp, depth, None) == []
+    assert st.mode is None
+    got = st.offer_tf(tf_msg(0, [("world", "camera", np.eye(4))]), static=True)
+    assert st.mode == "tf" and [s for s, _ in got] == stamps
 
 
 def test_odometry_tracks_only_the_frames_that_were_embedded(walk):

@@ -73,7 +73,8 @@ from ..frame import Frame
 from ..params import param
 from ..sync import StampSync, max_jump_param
 from .health import Health, no_camera_info, report_starved, sync_reporter
-from .poses import CAMERA_HZ, CHOICE_HELD_S, choice_frames
+from .poses import (CHOICE_HELD_S, MAX_CAMERA_HZ, MAX_POSE_HZ, choice_frames,
+                    pairing_frames)
 from .records import EmbeddingRecord, EmbeddingSpec, ViewRecord
 from .views import (FusionInputs, StoredView, coverage, fuse_depth, fuse_keyframes, resize_to,
                     view_visibility)
@@ -227,10 +228,16 @@ class MapperNodeConfig:
                                   lo=0.01, hi=600.0, unit="s")
     sync_max_jump_s: float = max_jump_param()
     queue_size: int = param(30, "subscription depth of the input topics; the pairing holds "
-                            "up to max(2 queue_size, 30 x sync_horizon_s) messages of each "
-                            "input while they wait for their embedding (while pose_source "
-                            "auto chooses, 30 x (sync_horizon_s + pose_auto_wait_s), the wait "
-                            "counted up to 10 s)", lo=1, hi=1000)
+                            "up to max(2 queue_size, 90 x sync_horizon_s) messages of each "
+                            "input while they wait for their embedding, sync_horizon_s of a "
+                            "camera of up to 90 Hz (180 at the defaults: 387 MB of 640x480 "
+                            "colour and depth at most, what a 90 Hz camera sends; a slower "
+                            "one fills it less), and of the pose input 1000 x sync_horizon_s "
+                            "(a motion capture's pose topic); while pose_source auto chooses, "
+                            "90 x (sync_horizon_s + pose_auto_wait_s), the wait counted up to "
+                            "10 s (450 at the defaults: 968 MB at 640x480 for a 90 Hz camera, "
+                            "323 MB for a 30 Hz one). A faster camera: raise it to its rate x "
+                            "sync_horizon_s / 2", lo=1, hi=1000)
     log_throttle_s: float = param(5.0, "min seconds between repeated reports of one kind of "
                                   "problem", lo=0.0, hi=3600.0, unit="s")
 
@@ -258,14 +265,25 @@ class MapperStage:
         self.online = online
         self._clock = clock
         self.health = health or Health("mapper", throttle_s=cfg.log_throttle_s, clock=clock)
-        # Room for sync_horizon_s of a 30 Hz camera: at 1280x720 the embedding comes over
-        # a second after its frame, and a queue of 30 pushed every partner out first.
-        self.pairing_capacity = max(4, 2 * cfg.queue_size,
-                                    int(CAMERA_HZ * cfg.sync_horizon_s))
+        # Room for sync_horizon_s of a camera of up to MAX_CAMERA_HZ (180 messages per
+        # input at the defaults: 387 MB of 640x480 colour and depth; a slower camera holds
+        # only what came within sync_horizon_s): the embedding comes a second or more after
+        # its frame, and a queue of a 30 Hz camera's 60 pushed the colour and depth of 50
+        # of 60 embedded frames of a 60 Hz camera out first. The pose input, 128 bytes a
+        # message, holds sync_horizon_s of a pose topic of up to MAX_POSE_HZ (a motion
+        # capture's).
+        self.pairing_capacity = pairing_frames(cfg)
+        self.pose_capacity = max(self.pairing_capacity,
+                                 int(round(MAX_POSE_HZ * cfg.sync_horizon_s)))
         self.sync = StampSync(self.STREAMS, int(cfg.sync_tolerance_ms * 1e6),
                               cfg.sync_horizon_s, capacity=self.pairing_capacity, clock=clock,
                               on_anomaly=self._on_sync_anomaly,
-                              max_jump_ns=int(cfg.sync_max_jump_s * 1e9))
+                              max_jump_ns=int(cfg.sync_max_jump_s * 1e9),
+                              capacities={"pose": self.pose_capacity},
+                              # An input is named missing once the others lost two queues'
+                              # worth (60 at the defaults, as when that was the capacity: at
+                              # 180 a wrong topic name was said seconds later).
+                              starve_after=max(4, 2 * cfg.queue_size))
         self._report_sync = sync_reporter(self.health)
         self.mapper = None
         self.spec: EmbeddingSpec | None = None
@@ -379,9 +397,10 @@ class MapperStage:
         (``no_spec``), and the first frames of a run were lost. It is held as long as the
         frames it pairs with wait for it (``sync_horizon_s``, and ``pose_auto_wait_s``
         more while pose_source auto chooses) and as many as the pairing holds of each
-        input (``sync.capacity``: 60 at the defaults, 2.8 MB each at 320x240x9 float32;
-        the pairing would hold as many of them once converted); beyond either it is
-        refused as ``no_spec``, saying which."""
+        input (``sync.capacity``: 180 at the defaults, 2.8 MB each at 320x240x9 float32;
+        the pairing would hold as many of them once converted; at embedding_node.max_rate_hz
+        10 no more than 20 come within sync_horizon_s); beyond either it is refused as
+        ``no_spec``, saying which."""
         now = self._clock()
         with self._before_spec_lock:
             gone = self._expired_held(now)
@@ -440,11 +459,12 @@ class MapperStage:
         says so from the pose stage). While it does, the frames' colour, depth and
         embeddings wait for the poses the choice hands on: up to ``sync_horizon_s`` +
         ``pose_auto_wait_s`` (at ``sync_horizon_s`` alone the first frames expired before
-        a choice at 3 s), and as many of them as a 30 Hz camera sends meanwhile
-        (:func:`.poses.choice_frames`: 150 per input at the defaults). Held to the 60 of
-        ``sync_horizon_s`` alone, the first second of a 30 Hz bag without poses was pushed
-        out before the choice: 11 of its 50 embedded frames lost without a word. A longer
-        wait than the pairing holds is said (``pose_choice_overflow``). Once chosen, the
+        a choice at 3 s), and as many of them as a camera of up to ``MAX_CAMERA_HZ`` sends
+        meanwhile (:func:`.poses.choice_frames`: 450 per input at the defaults). Held to the
+        60 of ``sync_horizon_s`` of a 30 Hz camera alone, the first second of a 30 Hz bag
+        without poses was pushed out before the choice: 11 of its 50 embedded frames lost
+        without a word. A longer wait than the pairing holds is said
+        (``pose_choice_overflow``). Once chosen, the
         pairing is back to ``sync_horizon_s`` and its own capacity (the frames held
         meanwhile pair, or are superseded, as the poses come)."""
         with self._lock:
@@ -477,8 +497,8 @@ class MapperStage:
             self.health.problem(
                 "pose_choice_overflow", f"{stream}: the oldest message is dropped: more than "
                 f"{held} wait for their pose while pose_source auto chooses where poses come "
-                f"from (the mapper holds sync_horizon_s + pose_auto_wait_s of a "
-                f"{CAMERA_HZ:g} Hz camera meanwhile, the wait counted up to "
+                f"from (the mapper holds sync_horizon_s + pose_auto_wait_s of a camera of up "
+                f"to {MAX_CAMERA_HZ:g} Hz meanwhile, the wait counted up to "
                 f"{CHOICE_HELD_S:g} s): set mapper_node.pose_source, or a shorter "
                 "pose_auto_wait_s")
         refused = [s for s in ("color", "depth") if s in self.health.refused()]

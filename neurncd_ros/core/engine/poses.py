@@ -42,23 +42,53 @@ from .health import Health, no_camera_info, sync_reporter
 
 SOURCES = ("auto", "topic", "tf", "odometry")
 
-CAMERA_HZ = 30.0
-"""The camera rate the mapper's pairing is sized for (a 30 Hz RGB-D camera)."""
+MAX_CAMERA_HZ = 90.0
+"""The fastest camera the mapper's pairing is sized for: a RealSense streams at 90, 60 or
+30 fps (some drivers at 15 or 6). The pairing holds a frame's colour and depth until its
+embedding comes, up to a second and a half later (more at 1280x720), and the embedding node
+embeds at most embedding_node.max_rate_hz (10) of them a second, so it holds every frame of
+that time. Sized for 30 Hz (60 messages per input), a 60 Hz camera pushed the colour and
+depth of 50 of 60 embedded frames out of the pairing before their embedding came, a 90 Hz
+one those of 54 (test/test_poses.py). A slower camera holds less: the pairing gives up what
+waited ``sync_horizon_s``, so this only bounds what it holds."""
+
+MAX_POSE_HZ = 1000.0
+"""The fastest pose topic the mapper's pairing is sized for (a motion capture publishes
+at 100-360 Hz, an estimator at its IMU's rate): 128 bytes a pose, against 2.15 MB for a
+640x480 frame's colour and depth. Held to a 30 Hz camera's count, a 120 Hz pose topic kept
+half a second of poses, and 55 of 60 embedded frames of a 30 Hz camera, whose embedding
+comes a second after them, found theirs pushed out."""
 
 CHOICE_HELD_S = 10.0
 """pose_source auto: at most this much of ``pose_auto_wait_s`` of frames is held for the
 choice (:func:`choice_frames`); frames beyond it are dropped, oldest first, and said."""
 
 
+def pairing_frames(cfg) -> int:
+    """Messages of each input the mapper's pairing holds while they wait for their
+    partners (:class:`.mapping.MapperStage`, ``pairing_capacity``):
+    max(4, 2 ``queue_size``, ``MAX_CAMERA_HZ`` x ``sync_horizon_s``), 180 at the defaults.
+    That bounds the memory of the frames waiting for their embedding: 180 colour and
+    depth images take 387 MB at 640x480 and 1.16 GB at 1280x720 (a RealSense streams that
+    size at 30 fps at most, so it holds 60 of them at most, 387 MB): a camera of f Hz
+    holds f x ``sync_horizon_s`` frames at most, as the pairing gives up what waited
+    longer, and this caps what a faster stream (or a burst of stamps) holds. The pose
+    input holds ``MAX_POSE_HZ`` x ``sync_horizon_s`` (2000 at the defaults, under 1 MB)."""
+    return max(4, 2 * cfg.queue_size, int(round(MAX_CAMERA_HZ * cfg.sync_horizon_s)))
+
+
 def choice_frames(cfg) -> int:
-    """Frames of a ``CAMERA_HZ`` camera that come while ``pose_source`` auto chooses, and
+    """Frames of a ``MAX_CAMERA_HZ`` camera that come while ``pose_source`` auto chooses, and
     that the mapper holds until the choice hands their poses on: ``sync_horizon_s`` +
-    ``pose_auto_wait_s`` (at most ``CHOICE_HELD_S`` of the wait) of them; 150 at the
+    ``pose_auto_wait_s`` (at most ``CHOICE_HELD_S`` of the wait) of them; 450 at the
     defaults. Held per input as images: colour (rgb8) and depth (float32 metres) take
-    2.15 MB a frame at 640x480, so 320 MB at the defaults and at most 775 MB (360 frames,
-    a wait of 10 s or more); at 1280x720, 6.5 MB a frame, 970 MB at the defaults. The
-    embeddings come at the embedding node's rate (a third of them at its max_rate_hz 10)."""
-    return int(CAMERA_HZ * (cfg.sync_horizon_s + min(cfg.pose_auto_wait_s, CHOICE_HELD_S)))
+    2.15 MB a frame at 640x480, so 968 MB at the defaults for a 90 Hz camera, 323 MB for
+    a 30 Hz one (150 frames: the pairing gives up what waited longer), and at most
+    2.3 GB (1080 frames of a 90 Hz camera, a wait of 10 s or more); at 1280x720, 6.45 MB a
+    frame, 968 MB at the defaults for a 30 Hz camera. The embeddings come at the embedding
+    node's rate (at most its max_rate_hz 10 a second)."""
+    return int(round(MAX_CAMERA_HZ * (cfg.sync_horizon_s
+                                      + min(cfg.pose_auto_wait_s, CHOICE_HELD_S))))
 
 
 class PoseStage:
@@ -81,7 +111,11 @@ class PoseStage:
         self.tf_available = tf_available
         self.mode: str | None = None if source == "auto" else source
         self.tf = TfBuffer(horizon_ns=int(10e9))
+        # Depth stamps waiting for /tf to give their pose: while auto chooses, every frame
+        # of the wait, as the mapper holds them (kept to 4 queue_size, 120, the first 141
+        # frames of a 90 Hz camera went without a pose when /tf linked the frames at 2.9 s).
         self._tf_pending: list[int] = []
+        self._tf_max = max(4 * node_cfg.queue_size, choice_frames(node_cfg))
         self.sync = StampSync(("depth", "color"), int(node_cfg.sync_tolerance_ms * 1e6),
                               node_cfg.sync_horizon_s, capacity=max(4, node_cfg.queue_size),
                               clock=clock, on_anomaly=sync_reporter(health),
@@ -92,7 +126,7 @@ class PoseStage:
         # at most sync_horizon_s of them (odometry_frames "embedded"), and the embeddings'
         # stamps whose pair has not come yet
         self._held: collections.deque = collections.deque(
-            maxlen=8 * max(4, node_cfg.queue_size))
+            maxlen=max(8 * max(4, node_cfg.queue_size), pairing_frames(node_cfg)))
         self._wanted: collections.deque = collections.deque(maxlen=max(4, node_cfg.queue_size))
         self._last_tracked: int | None = None
         # Tracked while auto was undecided, handed on once it chose odometry: the poses of
@@ -218,7 +252,7 @@ class PoseStage:
         if mode is None and stream == "depth" and self.tf_available:
             # Undecided: /tf may come later than the first frames; they are looked up
             # once it links the frames (as with pose_source tf), not lost.
-            self._tf_pending = (self._tf_pending + [int(stamp_ns)])[-4 * self.cfg.queue_size:]
+            self._tf_pending = (self._tf_pending + [int(stamp_ns)])[-self._tf_max:]
         # odometry, or still undecided: track anyway, so a late decision loses nothing
         out = []
         for stamp, g in self.sync.add(stream, stamp_ns, image):
@@ -299,7 +333,7 @@ class PoseStage:
                     self.health.problem("no_tf", f"frame {stamp} has no pose: {err}{hint}")
                 else:
                     keep.append(stamp)
-        self._tf_pending = keep[-4 * self.cfg.queue_size:]
+        self._tf_pending = keep[-self._tf_max:]
         return out
 
     def _track(self, stamp: int, rgb: np.ndarray, depth: np.ndarray,
