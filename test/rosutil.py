@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any, Iterator
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -125,6 +127,28 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> int:
             proc.kill()
             proc.wait()
     return proc.returncode
+
+
+@contextlib.contextmanager
+def node_graph(domain_id: int, names: tuple[str, ...], args: list[str], log_dir: Path,
+               node_name: str) -> Iterator[tuple[Any, dict[str, subprocess.Popen]]]:
+    """The nodes ``names`` (``neurncd_ros.nodes.<name> <args>``, logs in
+    ``log_dir/<name>.log``) and a test node ``node_name`` in domain ``domain_id``: yields
+    (test node, processes); on leaving, the test node and rclpy are shut down and every
+    process is stopped, and each must have exited 0 (unless the body raised)."""
+    import rclpy
+
+    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain_id),
+                      log_dir / f"{n}.log") for n in names}
+    rclpy.init()
+    node = rclpy.create_node(node_name)
+    try:
+        yield node, procs
+    finally:
+        node.destroy_node()
+        rclpy.shutdown()
+        codes = [stop(p, timeout=30) for p in procs.values()]
+    assert codes == [0] * len(procs), dict(zip(procs, codes))
 
 
 def spin_until(node, predicate, timeout: float) -> bool:

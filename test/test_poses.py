@@ -505,12 +505,10 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
     import time
 
     import rosutil
-    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
-                         spin_until, start, stop)
+    from rosutil import apply_ros_env, camera_publishers, node_graph, publish_frame, spin_until
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
-    import rclpy
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import Image
 
@@ -519,12 +517,9 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
     frames = list(synth.generate(1005, 90, synth.SynthConfig(width=160, height=120,
                                                              fps=10.0)))
     args = ["--ros-args", "-p", "mapper_node.pose_auto_wait_s:=1.0"]
-    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
-                      tmp_path / f"{n}.log") for n in ("embedding", "mapper", "discovery")}
-    rclpy.init()
-    node = rclpy.create_node("camera_without_poses")
     labels, poses = [], []
-    try:
+    with node_graph(domain, ("embedding", "mapper", "discovery"), args, tmp_path,
+                    "camera_without_poses") as (node, procs):
         node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
         node.create_subscription(PoseStamped, "/camera/pose", poses.append, output_qos(50))
         pubs = camera_publishers(node)
@@ -541,11 +536,6 @@ def test_nodes_label_a_stream_without_poses_using_odometry(tmp_path):
         assert len(poses) >= 10 and len(labels) >= 3, logs["mapper"][-3000:]
         assert "pose source: odometry" in logs["mapper"]
         assert all(p.poll() is None for p in procs.values())
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-        codes = [stop(p, timeout=30) for p in procs.values()]
-    assert codes == [0, 0, 0]
 
 
 @pytest.mark.ros
@@ -556,12 +546,10 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
     chose only when a frame came after the wait: it stayed undecided, labelled nothing and
     reported nothing pending, so bringup stopped the nodes as if done."""
     import rosutil
-    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
-                         spin_until, start, stop)
+    from rosutil import apply_ros_env, camera_publishers, node_graph, publish_frame, spin_until
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
-    import rclpy
     from sensor_msgs.msg import Image
 
     from neurncd_ros.nodes.common import output_qos
@@ -569,12 +557,9 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
     frames = list(synth.generate(1005, 5, synth.SynthConfig(width=160, height=120,
                                                             fps=10.0)))
     args = ["--ros-args", "-p", "embedding_node.max_rate_hz:=0.0"]
-    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
-                      tmp_path / f"{n}.log") for n in ("embedding", "mapper", "discovery")}
-    rclpy.init()
-    node = rclpy.create_node("short_camera_without_poses")
     labels = []
-    try:
+    with node_graph(domain, ("embedding", "mapper", "discovery"), args, tmp_path,
+                    "short_camera_without_poses") as (node, procs):
         node.create_subscription(Image, "/neurncd/labels", labels.append, output_qos(50))
         pubs = camera_publishers(node)
         # Every node up and seeing its upstream node, as bringup waits before a bag.
@@ -593,11 +578,6 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
         assert "pose source: odometry" in logs["mapper"]
         assert {lab.header.stamp.sec * 10**9 + lab.header.stamp.nanosec for lab in labels} \
             <= {f.stamp_ns for f in frames}
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-        codes = [stop(p, timeout=30) for p in procs.values()]
-    assert codes == [0, 0, 0]
 
 
 def test_the_reset_services_start_a_new_room(tmp_path):
@@ -606,12 +586,10 @@ def test_the_reset_services_start_a_new_room(tmp_path):
     (it lost that room's first 10 frames against the old room's keyframes), and both
     say what they forgot."""
     import rosutil
-    from rosutil import (apply_ros_env, camera_publishers, publish_frame, ros_env,
-                         spin_until, start, stop)
+    from rosutil import apply_ros_env, camera_publishers, node_graph, publish_frame, spin_until
 
     domain = rosutil.domain(12)
     apply_ros_env(domain)
-    import rclpy
     from geometry_msgs.msg import PoseStamped
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
@@ -625,12 +603,9 @@ def test_the_reset_services_start_a_new_room(tmp_path):
                 for f in synth.generate(2001, 6, size)]
     args = ["--ros-args", "-p", "mapper_node.pose_source:=odometry",
             "-p", "mapper_node.odometry_frames:=all"]
-    procs = {n: start(["-m", f"neurncd_ros.nodes.{n}", *args], ros_env(domain),
-                      tmp_path / f"{n}.log") for n in ("mapper", "discovery")}
-    rclpy.init()
-    node = rclpy.create_node("new_room_camera")
     poses = {}
-    try:
+    with node_graph(domain, ("mapper", "discovery"), args, tmp_path,
+                    "new_room_camera") as (node, procs):
         node.create_subscription(PoseStamped, "/camera/pose", lambda m: poses.setdefault(
             m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, pose_to_matrix(m)),
             output_qos(50))
@@ -669,8 +644,3 @@ def test_the_reset_services_start_a_new_room(tmp_path):
         np.testing.assert_allclose(poses[new_room[0].stamp_ns], np.eye(4), atol=1e-6)
         assert "odometry lost" not in mapper_log, mapper_log[-3000:]
         assert all(p.poll() is None for p in procs.values())
-    finally:
-        node.destroy_node()
-        rclpy.shutdown()
-        codes = [stop(p, timeout=30) for p in procs.values()]
-    assert codes == [0, 0]
