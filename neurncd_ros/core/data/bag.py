@@ -355,7 +355,7 @@ def _unreadable_hint(path: Path, err: Exception) -> str:
                 "copy); `sqlite3 <file> .recover | sqlite3 fixed.db3` may save the part "
                 "that was written")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
-        files = sorted(p.name for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
+        files = _storage_files(path)
         if files:
             return (f"; the folder has no metadata.yaml (rosbag2 writes it when a recording "
                     f"ends): give the storage file itself ({path / files[0]}) or run "
@@ -380,13 +380,15 @@ def _dataset_hint(path: Path) -> str:
             f"{path} --out scene.mcap)")
 
 
+def _storage_files(folder: Path) -> list[str]:
+    """The names of a bag folder's storage files (.mcap, .db3), sorted."""
+    return sorted(p.name for p in folder.iterdir() if p.suffix in (".mcap", ".db3"))
+
+
 def _where(path: Path) -> str:
     """The bag path, with its storage files when it is a folder (to name the bad file)."""
-    if path.is_dir():
-        files = sorted(p.name for p in path.iterdir() if p.suffix in (".mcap", ".db3"))
-        if files:
-            return f"{path} ({', '.join(files)})"
-    return str(path)
+    files = _storage_files(path) if path.is_dir() else []
+    return f"{path} ({', '.join(files)})" if files else str(path)
 
 
 def _messages(path: Path, reader: Any, topics: Iterable[str]
