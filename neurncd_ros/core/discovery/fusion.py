@@ -69,7 +69,7 @@ frame and panes cut them into separate segments, which Markov clustering puts in
 separate novel clusters (bright panes, white frame): a window then carried two or
 three ids in every frame. Two novel regions of one frame whose depth-continuous
 shared border is at least ``touch_share`` of the smaller one's outline, on planes
-within ``TOUCH_MAX_ANGLE_DEG`` of parallel, are aliased from that frame on: the id
+within ``touch_max_angle_deg`` of parallel, are aliased from that frame on: the id
 shown in fewer frames is published as the other (between ids shown alike, the smaller
 as the larger). This is the exception to "side by side stays apart"
 above: the ceiling meets a window at a right angle, and two objects that touch share
@@ -115,12 +115,6 @@ from ..camera import Intrinsics, backproject
 from ..classes import NOVEL_ID_START
 from ..params import param
 
-# touch_share: the most two touching novel regions' planes may differ and still be one
-# object. A window's panes and frame, a picture's canvas and frame, lie in one wall
-# plane; the ceiling meets a window at the wall's corner, 90 degrees apart, and must stay
-# a class of its own.
-TOUCH_MAX_ANGLE_DEG = 20.0
-
 _BITS = 21  # per axis: 2**21 voxels, +-31 km at 3 cm, packed into one int64 key
 _OFFSET = 1 << (_BITS - 1)
 
@@ -148,11 +142,17 @@ class LabelFusionConfig:
     touch_share: float = param(0.2, "two novel ids whose regions in a frame share a "
                                "depth-continuous border of at least this share of the "
                                "smaller one's outline, on surfaces within "
-                               "TOUCH_MAX_ANGLE_DEG of parallel, are one object: the id "
+                               "touch_max_angle_deg of parallel, are one object: the id "
                                "shown in fewer frames (between ids shown alike, the "
                                "smaller) is published as the other from then on (a "
                                "window's panes and frame clustered apart; 0 = off)",
                                lo=0.0, hi=1.0)
+    touch_max_angle_deg: float = param(20.0, "touch_share: the most the best-fit planes of "
+                                       "two touching novel regions may differ and still be "
+                                       "one object (a window's panes and frame lie in one "
+                                       "wall plane; the ceiling meets a window at 90 degrees "
+                                       "and must stay a class of its own)", lo=0.0, hi=90.0,
+                                       unit="deg")
     alias_frame_share: float = param(0.5, "alias_share and touch_share rename an id only "
                                      "if their evidence (its pixels on the other id's "
                                      "surface; its region touching the other's) came in at "
@@ -359,7 +359,7 @@ class LabelFusion:
         one object when the border they share, counted over pixel pairs whose depths
         agree (3 cm + 2 %: one surface, not an object in front of another), is at least
         ``touch_share`` of the smaller region's outline, and their best-fit planes are
-        within ``TOUCH_MAX_ANGLE_DEG`` of parallel. Two objects that merely touch share
+        within ``touch_max_angle_deg`` of parallel. Two objects that merely touch share
         a small part of their outlines; the ceiling meets a window at a right angle.
         The id shown in fewer frames is renamed (between ids shown alike, the smaller
         region's), and only if the two touched in at least ``alias_frame_share`` of the
@@ -393,7 +393,7 @@ class LabelFusion:
                               np.linalg.eigh(np.cov(pts.T))[1][:, 0])
             return normals[i]
 
-        cos_max = np.cos(np.radians(TOUCH_MAX_ANGLE_DEG))
+        cos_max = np.cos(np.radians(self.cfg.touch_max_angle_deg))
         size = np.bincount(lab.ravel(), minlength=outline.size)
         for key, n in zip(pairs.tolist(), border.tolist()):
             a, b = key >> 32, key & 0xFFFFFFFF
