@@ -340,6 +340,47 @@ def test_touching_coplanar_novel_ids_are_one_object_and_others_stay_apart():
     assert (out[under] == other).mean() > 0.8 and (out[ceiling] == NOVEL).mean() > 0.8
 
 
+def test_a_frame_with_its_sill_is_no_plane_and_joins_the_panes_it_touches():
+    """A window's frame seen with its sill sticking out of the wall is no plane: its
+    best-fit "normal" is 60 degrees from the panes', so the plane test kept the two ids
+    apart (the tuning seeds' windows, PLANE_RATIO). A region that is no plane has no
+    normal to compare, and the shared border decides; a sloped but planar region at
+    that angle (the sill alone) still keeps its id."""
+    from neurncd_ros.core.camera import backproject
+    from neurncd_ros.core.discovery.fusion import PLANE_RATIO
+    frame_id, panes_id = NOVEL, NOVEL + 1
+    pose = _wall_pose(0.0)
+    flat = _plane_depth(pose)
+    x, z = _world_x(pose, flat), _world_z(pose, flat)
+    panes = (np.abs(x) < 0.3) & (np.abs(z) < 0.2)
+    side = (x > 0.3) & (x < 0.4) & (np.abs(z) < 0.2)
+    sill = (np.abs(x) < 0.4) & (z < -0.2) & (z > -0.4)
+    depth = flat.copy()  # the sill comes out of the wall, 2 m per m below the panes
+    depth[sill] = flat[sill] * (1 - 2.0 * (-0.2 - z[sill]))
+    points = np.zeros((H, W, 3))
+    valid_points, valid = backproject(depth, INTR)
+    points[valid] = valid_points
+
+    def plane(mask):
+        ev, vec = np.linalg.eigh(np.cov(points[mask].T))
+        return ev[0] / ev[1], vec[:, 0]
+
+    ratio, n_frame = plane(side | sill)
+    _, n_panes = plane(panes)
+    angle = np.degrees(np.arccos(abs(float(n_frame @ n_panes))))
+    assert ratio > 2 * PLANE_RATIO and angle > 45  # the case of the tuning seeds
+    for frame, joined in ((side | sill, True), (sill, False)):
+        lab = np.full((H, W), WALL, np.uint16)
+        lab[frame], lab[panes] = frame_id, panes_id
+        fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0))
+        out = fus.update(lab, depth, INTR, pose, {frame_id, panes_id})
+        if joined:  # the panes, the larger region, keep their id
+            assert fus.aliases == {frame_id: panes_id}
+            assert (out[frame] == panes_id).mean() > 0.9
+        else:
+            assert fus.aliases == {} and (out[frame] == frame_id).mean() > 0.9
+
+
 def test_touching_ids_keep_the_id_shown_longer():
     """An object that appears as a sliver (here a window's panes, one frame alone) and
     whose bulk gets a fresh, larger id in the next frame keeps the id it was shown with

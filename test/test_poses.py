@@ -580,6 +580,7 @@ def test_nodes_label_a_short_stream_without_poses(tmp_path):
             <= {f.stamp_ns for f in frames}
 
 
+@pytest.mark.ros
 def test_the_reset_services_start_a_new_room(tmp_path):
     """/mapper/reset and /discovery/reset over DDS, as the README has a user call them
     before a new room: the mapper's odometry starts again at the new room's first frame

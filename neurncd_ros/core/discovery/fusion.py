@@ -115,6 +115,13 @@ from ..camera import Intrinsics, backproject
 from ..classes import NOVEL_ID_START
 from ..params import param
 
+# touch_max_angle_deg compares two planes. A region is a plane when the variance of its
+# points along their least direction is at most this share of that along the next: a
+# pane, a picture or a ceiling is (0.001-0.03 in the tuning seeds' windows), a window's
+# frame seen with its sill and reveal is not (0.3-0.7), and its best-fit "normal" then
+# points anywhere (25-80 degrees from the panes' it touches).
+PLANE_RATIO = 0.1
+
 _BITS = 21  # per axis: 2**21 voxels, +-31 km at 3 cm, packed into one int64 key
 _OFFSET = 1 << (_BITS - 1)
 
@@ -151,7 +158,9 @@ class LabelFusionConfig:
                                        "two touching novel regions may differ and still be "
                                        "one object (a window's panes and frame lie in one "
                                        "wall plane; the ceiling meets a window at 90 degrees "
-                                       "and must stay a class of its own)", lo=0.0, hi=90.0,
+                                       "and must stay a class of its own; a region that is "
+                                       "no plane, a frame with its sill, is not compared)",
+                                       lo=0.0, hi=90.0,
                                        unit="deg")
     alias_frame_share: float = param(0.5, "alias_share and touch_share rename an id only "
                                      "if their evidence (its pixels on the other id's "
@@ -360,7 +369,9 @@ class LabelFusion:
         agree (3 cm + 2 %: one surface, not an object in front of another), is at least
         ``touch_share`` of the smaller region's outline, and their best-fit planes are
         within ``touch_max_angle_deg`` of parallel. Two objects that merely touch share
-        a small part of their outlines; the ceiling meets a window at a right angle.
+        a small part of their outlines; the ceiling meets a window at a right angle. A
+        region that is no plane (``PLANE_RATIO``: a window's frame with its sill) has no
+        normal to compare, and the shared border alone decides.
         The id shown in fewer frames is renamed (between ids shown alike, the smaller
         region's), and only if the two touched in at least ``alias_frame_share`` of the
         frames that showed it (counted in :meth:`update`).
@@ -389,8 +400,11 @@ class LabelFusion:
             if i not in normals:
                 pts = points[at == i]
                 pts = pts[:: max(1, len(pts) // 2000)]
-                normals[i] = (None if len(pts) < 30 else
-                              np.linalg.eigh(np.cov(pts.T))[1][:, 0])
+                if len(pts) < 30:
+                    normals[i] = None
+                else:  # a zero vector: no plane, nothing to compare (PLANE_RATIO)
+                    ev, vec = np.linalg.eigh(np.cov(pts.T))
+                    normals[i] = vec[:, 0] if ev[0] <= PLANE_RATIO * ev[1] else np.zeros(3)
             return normals[i]
 
         cos_max = np.cos(np.radians(self.cfg.touch_max_angle_deg))
@@ -400,8 +414,10 @@ class LabelFusion:
             if n < self.cfg.touch_share * min(outline[a], outline[b]):
                 continue
             na, nb = normal(a), normal(b)
-            if na is None or nb is None or abs(float(na @ nb)) < cos_max:
+            if na is None or nb is None:
                 continue
+            if na.any() and nb.any() and abs(float(na @ nb)) < cos_max:
+                continue  # two planes at an angle: the ceiling and a window
             # The evidence is counted for the ids as published: a region's id may be an
             # alias of an established one, and that id is what an alias would rename.
             a, b = self._alias.get(a, a), self._alias.get(b, b)
