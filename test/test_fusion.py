@@ -343,11 +343,10 @@ def test_touching_coplanar_novel_ids_are_one_object_and_others_stay_apart():
 def test_a_frame_with_its_sill_is_no_plane_and_joins_the_panes_it_touches():
     """A window's frame seen with its sill sticking out of the wall is no plane: its
     best-fit "normal" is 60 degrees from the panes', so the plane test kept the two ids
-    apart (the tuning seeds' windows, PLANE_RATIO). A region that is no plane has no
+    apart (the tuning seeds' windows). A region that is no plane has no
     normal to compare, and the shared border decides; a sloped but planar region at
     that angle (the sill alone) still keeps its id."""
     from neurncd_ros.core.camera import backproject
-    from neurncd_ros.core.discovery.fusion import PLANE_RATIO
     frame_id, panes_id = NOVEL, NOVEL + 1
     pose = _wall_pose(0.0)
     flat = _plane_depth(pose)
@@ -368,11 +367,14 @@ def test_a_frame_with_its_sill_is_no_plane_and_joins_the_panes_it_touches():
     ratio, n_frame = plane(side | sill)
     _, n_panes = plane(panes)
     angle = np.degrees(np.arccos(abs(float(n_frame @ n_panes))))
-    assert ratio > 2 * PLANE_RATIO and angle > 45  # the case of the tuning seeds
-    for frame, joined in ((side | sill, True), (sill, False)):
+    assert ratio > 0.2 and angle > 45  # the case of the tuning seeds' windows
+    # touch_plane_ratio 1 takes every region for a plane, as the rule did before.
+    for frame, plane_ratio, joined in ((side | sill, 0.1, True), (sill, 0.1, False),
+                                       (side | sill, 1.0, False)):
         lab = np.full((H, W), WALL, np.uint16)
         lab[frame], lab[panes] = frame_id, panes_id
-        fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0))
+        fus = LabelFusion(LabelFusionConfig(touch_share=0.2, coarse_voxel_size=0.0,
+                                            touch_plane_ratio=plane_ratio))
         out = fus.update(lab, depth, INTR, pose, {frame_id, panes_id})
         if joined:  # the panes, the larger region, keep their id
             assert fus.aliases == {frame_id: panes_id}

@@ -115,13 +115,6 @@ from ..camera import Intrinsics, backproject
 from ..classes import NOVEL_ID_START
 from ..params import param
 
-# touch_max_angle_deg compares two planes. A region is a plane when the variance of its
-# points along their least direction is at most this share of that along the next: a
-# pane, a picture or a ceiling is (0.001-0.03 in the tuning seeds' windows), a window's
-# frame seen with its sill and reveal is not (0.3-0.7), and its best-fit "normal" then
-# points anywhere (25-80 degrees from the panes' it touches).
-PLANE_RATIO = 0.1
-
 _BITS = 21  # per axis: 2**21 voxels, +-31 km at 3 cm, packed into one int64 key
 _OFFSET = 1 << (_BITS - 1)
 
@@ -162,6 +155,15 @@ class LabelFusionConfig:
                                        "no plane, a frame with its sill, is not compared)",
                                        lo=0.0, hi=90.0,
                                        unit="deg")
+    touch_plane_ratio: float = param(0.1, "touch_max_angle_deg compares planes only: a "
+                                     "region is one when the variance of its points along "
+                                     "their least direction is at most this share of that "
+                                     "along the next (a pane or a ceiling: below 0.03; a "
+                                     "window's frame seen with its sill and reveal: 0.3-0.7, "
+                                     "its best-fit normal then points anywhere); between "
+                                     "a region that is no plane and another, the shared "
+                                     "border alone decides (1 = every region is a plane)",
+                                     lo=0.0, hi=1.0)
     alias_frame_share: float = param(0.5, "alias_share and touch_share rename an id only "
                                      "if their evidence (its pixels on the other id's "
                                      "surface; its region touching the other's) came in at "
@@ -370,8 +372,8 @@ class LabelFusion:
         ``touch_share`` of the smaller region's outline, and their best-fit planes are
         within ``touch_max_angle_deg`` of parallel. Two objects that merely touch share
         a small part of their outlines; the ceiling meets a window at a right angle. A
-        region that is no plane (``PLANE_RATIO``: a window's frame with its sill) has no
-        normal to compare, and the shared border alone decides.
+        region that is no plane (``touch_plane_ratio``: a window's frame with its sill) has
+        no normal to compare, and the shared border alone decides.
         The id shown in fewer frames is renamed (between ids shown alike, the smaller
         region's), and only if the two touched in at least ``alias_frame_share`` of the
         frames that showed it (counted in :meth:`update`).
@@ -402,9 +404,10 @@ class LabelFusion:
                 pts = pts[:: max(1, len(pts) // 2000)]
                 if len(pts) < 30:
                     normals[i] = None
-                else:  # a zero vector: no plane, nothing to compare (PLANE_RATIO)
+                else:  # a zero vector: no plane, nothing to compare
                     ev, vec = np.linalg.eigh(np.cov(pts.T))
-                    normals[i] = vec[:, 0] if ev[0] <= PLANE_RATIO * ev[1] else np.zeros(3)
+                    planar = ev[0] <= self.cfg.touch_plane_ratio * ev[1]
+                    normals[i] = vec[:, 0] if planar else np.zeros(3)
             return normals[i]
 
         cos_max = np.cos(np.radians(self.cfg.touch_max_angle_deg))
