@@ -318,11 +318,67 @@ def test_truncated_bag_raises_naming_file(tmp_path, storage):
     # what to do about it: the recording was cut off, and the tool that saves the rest
     assert ("the recording was cut off" if storage == "mcap" else "truncated or damaged") \
         in str(info.value)
-    assert ("mcap recover" if storage == "mcap" else ".recover") in str(info.value)
+    assert ("neurncd recover" if storage == "mcap" else ".recover") in str(info.value)
     with pytest.raises(BagError, match=str(f)):
         FrameReader(f)
     with pytest.raises(BagError, match="bag"):
         list(bag.iter_raw(tmp_path / "b"))
+
+
+def _zstd_copy(plain: Path, out: Path) -> None:
+    """The bag ``plain`` rewritten with MCAP's zstd chunks (storage preset zstd_fast)."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, Writer
+
+    w = Writer(out, version=9, storage_plugin=bag._storage_plugin("mcap"))
+    w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    w.open()
+    with Reader(plain) as r:
+        conns = {c.id: w.add_connection(c.topic, c.msgtype, typestore=bag.typestore())
+                 for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.id], t, raw)
+    w.close()
+
+
+@pytest.mark.parametrize("zstd", [False, True])
+def test_a_cut_off_mcap_is_recovered_up_to_its_cut(tmp_path, zstd, capsys):
+    """A recording cut off (recorder killed, disk full) is refused with the command that
+    saves it; `neurncd recover` copies the whole chunks before the cut, and they read
+    as the frames that were recorded. A cut in the summary keeps every frame."""
+    from neurncd_ros.cli import main
+
+    frames = make_frames(8, w=320, h=240)  # 0.7 MB a frame: rosbags closes chunks at 1 MiB
+    bag.write_bag(tmp_path / "b", frames)
+    if zstd:
+        _zstd_copy(tmp_path / "b", tmp_path / "z")
+    folder = tmp_path / ("z" if zstd else "b")
+    src = bag_file(folder)
+    whole = src.read_bytes()
+    src.write_bytes(whole[: len(whole) * 2 // 3])  # in place: the bag folder is cut off
+    with pytest.raises(BagError, match="neurncd recover"):
+        FrameReader(folder)
+    kept = bag.recover_mcap(folder, tmp_path / "fixed.mcap")
+    got = list(FrameReader(tmp_path / "fixed.mcap"))
+    assert kept["chunks"] >= 2 and 0 < len(got) < len(frames), (kept, len(got))
+    assert_same(frames[: len(got)], got)
+
+    cut = tmp_path / "summary_cut.mcap"  # the data whole, the summary and footer not
+    cut.write_bytes(whole[:-30])
+    assert main(["recover", str(cut), "--out", str(tmp_path / "all.mcap")]) == 0
+    assert "recovered" in capsys.readouterr().out
+    assert_same(frames, list(FrameReader(tmp_path / "all.mcap")))
+    assert main(["recover", str(cut), "--out", str(tmp_path / "all.mcap")]) == 1
+    assert "exists (--overwrite replaces it)" in capsys.readouterr().err
+
+    (tmp_path / "whole.mcap").write_bytes(whole)
+    with pytest.raises(BagError, match="complete.*nothing to recover"):
+        bag.recover_mcap(tmp_path / "whole.mcap", tmp_path / "x.mcap")
+    (tmp_path / "stub.mcap").write_bytes(whole[:200])
+    with pytest.raises(BagError, match="nothing to recover"):
+        bag.recover_mcap(tmp_path / "stub.mcap", tmp_path / "x.mcap")
+    with pytest.raises(BagError, match="not an MCAP"):
+        bag.recover_mcap(tmp_path / "b" / "metadata.yaml", tmp_path / "x.mcap")
+    assert not (tmp_path / "x.mcap").exists()
 
 
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):

@@ -347,9 +347,9 @@ def _unreadable_hint(path: Path, err: Exception) -> str:
     text = str(err)
     if "end magic" in text or "MCAP footer" in text:
         return ("; the file ends before its MCAP footer: the recording was cut off (recorder "
-                "killed, disk full, an interrupted copy). The MCAP CLI's `mcap recover "
-                "<file> -o fixed.mcap` rewrites the part that was written; then give "
-                "fixed.mcap here")
+                "killed, disk full, an interrupted copy). `neurncd recover <file> --out "
+                "fixed.mcap` copies the part that was written (as the MCAP CLI's `mcap "
+                "recover` does); then give fixed.mcap here")
     if "malformed" in text or "not a database" in text:
         return ("; the SQLite file is truncated or damaged (recorder killed, interrupted "
                 "copy); `sqlite3 <file> .recover | sqlite3 fixed.db3` may save the part "
@@ -389,6 +389,81 @@ def _where(path: Path) -> str:
     """The bag path, with its storage files when it is a folder (to name the bad file)."""
     files = _storage_files(path) if path.is_dir() else []
     return f"{path} ({', '.join(files)})" if files else str(path)
+
+
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
+    """Copy the part of a cut-off MCAP recording that was written, so it can be read.
+
+    A recorder that is killed, a full disk or an interrupted copy leaves an MCAP file
+    without its end (summary, footer, closing magic), which readers refuse. MCAP writes
+    records one after another, each with its length, and a chunk record whole when the
+    chunk closes: every complete record before the cut is intact. They are copied
+    byte for byte (the offsets stay as written), a chunk whose data does not decompress
+    to its stated size (or checksum) ends the copy, and a data-end record and a footer
+    without a summary close the file; readers then scan it. A file cut in its summary
+    (after the data-end record) keeps all its data. What the MCAP CLI's ``mcap
+    recover`` does, without a Go binary. ``src``: the .mcap file, or a bag folder holding
+    one. Returns the counts: ``records``, ``messages`` (outside chunks) and ``chunks``
+    kept, ``bytes`` kept of ``size``. Raises :class:`BagError` for a file that is no
+    MCAP, is not cut off (nothing to recover), or whose cut leaves nothing to read.
+    """
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    src, out = Path(src), Path(out)
+    if src.is_dir():
+        files = [f for f in _storage_files(src) if f.endswith(".mcap")]
+        if len(files) != 1:
+            raise BagError(f"{_where(src)}: recover needs one .mcap file, the folder holds "
+                           f"{len(files)}")
+        src = src / files[0]
+    if not src.is_file():
+        raise BagError(f"{src}: no such file")
+    if out.resolve() == src.resolve():
+        raise BagError(f"{out}: the recovered copy must not replace the recording")
+    data = memoryview(src.read_bytes())
+    size = len(data)
+    if bytes(data[:8]) != _MCAP_MAGIC or size < 17 or data[8] != 0x01:
+        raise BagError(f"{src}: not an MCAP file (no MCAP magic and header record)")
+    if bytes(data[-8:]) == _MCAP_MAGIC and size >= 16 + 9 + 20:
+        raise BagError(f"{src}: the recording is complete (it ends with its closing MCAP "
+                       "magic): nothing to recover")
+    counts = {"records": 0, "messages": 0, "chunks": 0, "size": size}
+    pos = 8  # the header record is the first one
+    while pos + 9 <= size:
+        op, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
+        end = pos + 9 + length
+        if end > size or op in (0x02, 0x0F):  # cut here, or the data section is whole
+            break
+        if op == 0x06:  # a chunk: its data must decompress to what it states
+            body = data[pos + 9: end]
+            raw_size, crc = struct.unpack_from("<QI", body, 16)
+            n = struct.unpack_from("<I", body, 28)[0]
+            compression = bytes(body[32: 32 + n]).decode("utf-8", "replace")
+            clen = struct.unpack_from("<Q", body, 32 + n)[0]
+            try:
+                decompress(bytes(body[40 + n: 40 + n + clen]), compression, raw_size, crc)
+            except Exception:
+                break
+            counts["chunks"] += 1
+        counts["messages"] += op == 0x05
+        counts["records"] += 1
+        pos = end
+    if not counts["chunks"] and not counts["messages"]:
+        raise BagError(f"{src}: cut off before its first complete message or chunk "
+                       f"({pos} of {size} bytes): nothing to recover")
+    counts["bytes"] = pos
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".part")
+    with tmp.open("wb") as f:
+        f.write(data[:pos])
+        f.write(b"\x0f" + struct.pack("<QI", 4, 0))           # data end, no checksum
+        f.write(b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0))  # footer: no summary
+        f.write(_MCAP_MAGIC)
+    tmp.replace(out)
+    return counts
 
 
 def _messages(path: Path, reader: Any, topics: Iterable[str]
