@@ -239,11 +239,17 @@ def test_a_second_novel_id_on_a_surface_the_map_gives_another_takes_that_id():
     out = fus.update(both, db, INTR, b, {NOVEL, other})
     assert fus.aliases == {} and (out[new_part] == other).all()
 
-    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.0))
+    # The share rule alone (touch_mapped off: the new id touches the old one in the fused
+    # labels, and that rule would join them; tested below).
+    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.0,
+                                                          touch_mapped=False))
     assert (outs[-1][new_part] == other).all()
     # Where a novel id only touches another's surface (under the share), it keeps its id.
-    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.95))
+    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.95,
+                                                          touch_mapped=False))
     assert (outs[-1][new_part] == other).all()
+    _, outs, pic_b, new_part, _ = views(LabelFusionConfig(alias_share=0.95))
+    assert (outs[-1][pic_b] == NOVEL).all()  # touch_mapped joins them
 
 
 @pytest.mark.parametrize("coarse", [0.15, 0.0])
@@ -381,6 +387,36 @@ def test_a_frame_with_its_sill_is_no_plane_and_joins_the_panes_it_touches():
             assert (out[frame] == panes_id).mean() > 0.9
         else:
             assert fus.aliases == {} and (out[frame] == frame_id).mean() > 0.9
+
+
+@pytest.mark.parametrize("mapped", [True, False])
+def test_a_new_id_beside_the_surface_the_map_knows_joins_its_id(mapped):
+    """The ceiling seen again from a new viewpoint, with new surface beside the part seen
+    before: the frame calls all of it by a new id, and the map keeps the old id on the
+    part it knows (five frames of votes). The old id is in the fused labels only, so the
+    touching rule on the frame's own labels never saw the two touch, and too little of
+    the new id lies on the old surface for ``alias_share``; ``touch_mapped`` tests the
+    fused labels' pairs too, and the new id joins the old one (the tuning seed 505's
+    ceiling: 104, then 118 from frame 29 on)."""
+    old_id, new_id = NOVEL, NOVEL + 1
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x = _world_x(pose, depth)
+    seen = (x > -0.5) & (x < -0.2)     # the part seen before
+    now = (x > -0.5) & (x < 0.7)       # the frame's new id covers it and the new part
+    assert seen.sum() < 0.4 * now.sum()  # below alias_share: that rule stays out
+    fus = LabelFusion(LabelFusionConfig(coarse_voxel_size=0.0, touch_mapped=mapped))
+    before = np.where(seen, old_id, 0).astype(np.uint16)  # the rest unseen: no votes
+    for _ in range(5):
+        fus.update(before, depth, INTR, pose, {old_id})
+    after = np.where(now, new_id, WALL).astype(np.uint16)
+    out = fus.update(after, depth, INTR, pose, {old_id, new_id})
+    if mapped:
+        assert fus.aliases == {new_id: old_id}
+        assert (out[now] == old_id).mean() > 0.95
+    else:
+        assert fus.aliases == {}
+        assert (out[seen] == old_id).mean() > 0.9 and (out[now & ~seen] == new_id).mean() > 0.9
 
 
 def test_touching_ids_keep_the_id_shown_longer():

@@ -161,6 +161,11 @@ class LabelFusionConfig:
                                "smaller) is published as the other from then on (a "
                                "window's panes and frame clustered apart; 0 = off)",
                                lo=0.0, hi=1.0)
+    touch_mapped: bool = param(True, "touch_share also between a novel id of the frame "
+                               "and one only the map gives (the fused labels): a surface "
+                               "seen again beside new surface, which the frame called by "
+                               "a new id throughout, keeps its id on the part the map "
+                               "knows, and the new id touching it there joins it")
     touch_max_angle_deg: float = param(20.0, "touch_share: the most the best-fit planes of "
                                        "two touching novel regions may differ and still be "
                                        "one object (a window's panes and frame lie in one "
@@ -373,10 +378,12 @@ class LabelFusion:
         return lab
 
     def _touching(self, lab: np.ndarray, depth: np.ndarray, points: np.ndarray,
-                  mask: np.ndarray) -> None:
+                  mask: np.ndarray, framed: set[int] | None = None) -> None:
         """Alias novel ids the frame shows as parts of one surface (``touch_share``);
         ``lab``: the frame's labels as published (int64, known aliases applied), with at
-        least two novel ids.
+        least two novel ids; or, with ``framed`` (``touch_mapped``), the fused labels,
+        of whose pairs only those with an id outside ``framed`` (the ids of the frame's
+        own labels) are tested.
 
         Markov clustering gives the parts of one object different ids when their colour
         and entropy differ (a window's bright panes and its frame): the object's pixels
@@ -428,6 +435,8 @@ class LabelFusion:
         size = np.bincount(lab.ravel(), minlength=outline.size)
         for key, n in zip(pairs.tolist(), border.tolist()):
             a, b = key >> 32, key & 0xFFFFFFFF
+            if framed is not None and a in framed and b in framed:
+                continue  # the frame's own pair: tested on the frame's labels
             if n < self.cfg.touch_share * min(outline[a], outline[b]):
                 continue
             na, nb = normal(a), normal(b)
@@ -479,6 +488,14 @@ class LabelFusion:
             # voxel's strongest vote may be for an id cast before it was aliased; neither
             # may show an aliased id, which the class table no longer lists.
             out = self._renamed(out.astype(np.int64)).astype(np.uint16)
+        if self.cfg.touch_share > 0 and self.cfg.touch_mapped:
+            fused = out.astype(np.int64)
+            framed = set(self._renamed(shown).tolist()) if shown.size else set()
+            novel = set(np.unique(fused[fused >= NOVEL_ID_START]).tolist())
+            if len(novel) >= 2 and not novel <= framed:
+                self._touching(fused, depth, points, mask, framed)
+                if self._alias:
+                    out = self._renamed(fused).astype(np.uint16)
         return out
 
     def _fuse(self, lab: np.ndarray, points: np.ndarray, live_novel: set[int] | None
