@@ -381,6 +381,24 @@ def test_a_cut_off_mcap_is_recovered_up_to_its_cut(tmp_path, zstd, capsys):
     assert not (tmp_path / "x.mcap").exists()
 
 
+def test_recover_reads_the_recording_chunk_by_chunk(tmp_path):
+    """A recording cut off by a full disk can be tens of GB: recover streams it (one
+    chunk in memory at a time), it does not read the whole file into memory."""
+    import tracemalloc
+
+    bag.write_bag(tmp_path / "b", make_frames(16, w=320, h=240))  # 11 MB, 1 MiB chunks
+    src = bag_file(tmp_path / "b")
+    os.truncate(src, src.stat().st_size * 2 // 3)
+    tracemalloc.start()
+    try:
+        kept = bag.recover_mcap(src, tmp_path / "fixed.mcap")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert kept["chunks"] >= 5 and peak < kept["size"] / 4, (kept, peak)
+    assert len(list(FrameReader(tmp_path / "fixed.mcap"))) >= 8
+
+
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):
     """rosbag2 writes metadata.yaml when a recording ends: a folder without it got rosbags'
     "Expected metadata file ... does not exist" alone. The error names the storage file,

@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import struct
+import zlib
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
@@ -405,13 +406,13 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
     to its stated size (or checksum) ends the copy, and a data-end record and a footer
     without a summary close the file; readers then scan it. A file cut in its summary
     (after the data-end record) keeps all its data. What the MCAP CLI's ``mcap
-    recover`` does, without a Go binary. ``src``: the .mcap file, or a bag folder holding
-    one. Returns the counts: ``records``, ``messages`` (outside chunks) and ``chunks``
-    kept, ``bytes`` kept of ``size``. Raises :class:`BagError` for a file that is no
-    MCAP, is not cut off (nothing to recover), or whose cut leaves nothing to read.
+    recover`` does, without a Go binary. The file is streamed (one chunk in memory at a
+    time): a recording cut off by a full disk can be larger than memory. ``src``: the
+    .mcap file, or a bag folder holding one. Returns the counts: ``records``,
+    ``messages`` (outside chunks) and ``chunks`` kept, ``bytes`` kept of ``size``.
+    Raises :class:`BagError` for a file that is no MCAP, is not cut off (nothing to
+    recover), or whose cut leaves nothing to read.
     """
-    from rosbags.rosbag2.storage_mcap import decompress
-
     src, out = Path(src), Path(out)
     if src.is_dir():
         files = [f for f in _storage_files(src) if f.endswith(".mcap")]
@@ -423,47 +424,83 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
         raise BagError(f"{src}: no such file")
     if out.resolve() == src.resolve():
         raise BagError(f"{out}: the recovered copy must not replace the recording")
-    data = memoryview(src.read_bytes())
-    size = len(data)
-    if bytes(data[:8]) != _MCAP_MAGIC or size < 17 or data[8] != 0x01:
-        raise BagError(f"{src}: not an MCAP file (no MCAP magic and header record)")
-    if bytes(data[-8:]) == _MCAP_MAGIC and size >= 16 + 9 + 20:
-        raise BagError(f"{src}: the recording is complete (it ends with its closing MCAP "
-                       "magic): nothing to recover")
-    counts = {"records": 0, "messages": 0, "chunks": 0, "size": size}
-    pos = 8  # the header record is the first one
-    while pos + 9 <= size:
-        op, length = data[pos], struct.unpack_from("<Q", data, pos + 1)[0]
-        end = pos + 9 + length
-        if end > size or op in (0x02, 0x0F):  # cut here, or the data section is whole
-            break
-        if op == 0x06:  # a chunk: its data must decompress to what it states
-            body = data[pos + 9: end]
-            raw_size, crc = struct.unpack_from("<QI", body, 16)
-            n = struct.unpack_from("<I", body, 28)[0]
-            compression = bytes(body[32: 32 + n]).decode("utf-8", "replace")
-            clen = struct.unpack_from("<Q", body, 32 + n)[0]
-            try:
-                decompress(bytes(body[40 + n: 40 + n + clen]), compression, raw_size, crc)
-            except Exception:
-                break
-            counts["chunks"] += 1
-        counts["messages"] += op == 0x05
-        counts["records"] += 1
-        pos = end
-    if not counts["chunks"] and not counts["messages"]:
-        raise BagError(f"{src}: cut off before its first complete message or chunk "
-                       f"({pos} of {size} bytes): nothing to recover")
-    counts["bytes"] = pos
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".part")
-    with tmp.open("wb") as f:
-        f.write(data[:pos])
-        f.write(b"\x0f" + struct.pack("<QI", 4, 0))           # data end, no checksum
-        f.write(b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0))  # footer: no summary
-        f.write(_MCAP_MAGIC)
+    size = src.stat().st_size
+    with src.open("rb") as f:
+        head = f.read(17)
+        if head[:8] != _MCAP_MAGIC or size < 17 or head[8] != 0x01:
+            raise BagError(f"{src}: not an MCAP file (no MCAP magic and header record)")
+        f.seek(max(0, size - 8))
+        if f.read(8) == _MCAP_MAGIC and size >= 16 + 9 + 20:
+            raise BagError(f"{src}: the recording is complete (it ends with its closing "
+                           "MCAP magic): nothing to recover")
+        counts = {"records": 0, "messages": 0, "chunks": 0, "size": size}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(out.name + ".part")
+        with tmp.open("wb") as dst:
+            dst.write(_MCAP_MAGIC)
+            pos = 8  # the header record is the first one
+            f.seek(pos)
+            while pos + 9 <= size:
+                rec = f.read(9)
+                op, length = rec[0], struct.unpack_from("<Q", rec, 1)[0]
+                end = pos + 9 + length
+                if end > size or op in (0x02, 0x0F):  # cut here, or the data section is whole
+                    break
+                if op == 0x06:  # a chunk: its data must decompress to what it states
+                    body = f.read(length)
+                    if not _whole_chunk(memoryview(body)):
+                        break
+                    dst.write(rec)
+                    dst.write(body)
+                    del body  # before the next chunk is read: one in memory
+                    counts["chunks"] += 1
+                else:
+                    dst.write(rec)
+                    _copy_exactly(f, dst, length)
+                counts["messages"] += op == 0x05
+                counts["records"] += 1
+                pos = end
+            if not counts["chunks"] and not counts["messages"]:
+                dst.close()
+                tmp.unlink()
+                raise BagError(f"{src}: cut off before its first complete message or chunk "
+                               f"({pos} of {size} bytes): nothing to recover")
+            counts["bytes"] = pos
+            dst.write(b"\x0f" + struct.pack("<QI", 4, 0))           # data end, no checksum
+            dst.write(b"\x02" + struct.pack("<QQQI", 20, 0, 0, 0))  # footer: no summary
+            dst.write(_MCAP_MAGIC)
     tmp.replace(out)
     return counts
+
+
+def _whole_chunk(body: memoryview) -> bool:
+    """Whether an MCAP chunk record's body (start and end times u64, uncompressed size
+    u64, checksum u32, compression string, records u64-sized) decompresses to its stated
+    size and checksum."""
+    from rosbags.rosbag2.storage_mcap import decompress
+
+    raw_size, crc = struct.unpack_from("<QI", body, 16)
+    n = struct.unpack_from("<I", body, 28)[0]
+    compression = bytes(body[32: 32 + n]).decode("utf-8", "replace")
+    clen = struct.unpack_from("<Q", body, 32 + n)[0]
+    data = body[40 + n: 40 + n + clen]
+    try:
+        if compression:
+            decompress(bytes(data), compression, raw_size, crc)
+        elif len(data) != raw_size or (crc and zlib.crc32(data) != crc):
+            return False  # uncompressed: checked in place, no copy of the chunk
+    except Exception:
+        return False
+    return True
+
+
+def _copy_exactly(f: Any, dst: Any, n: int) -> None:
+    """Copy the next ``n`` bytes of file ``f`` to ``dst`` in blocks (an attachment may be
+    larger than memory)."""
+    while n > 0:
+        block = f.read(min(n, 1 << 20))
+        dst.write(block)
+        n -= len(block)
 
 
 def _messages(path: Path, reader: Any, topics: Iterable[str]
