@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -397,6 +398,33 @@ def test_recover_reads_the_recording_chunk_by_chunk(tmp_path):
         tracemalloc.stop()
     assert kept["chunks"] >= 5 and peak < kept["size"] / 4, (kept, peak)
     assert len(list(FrameReader(tmp_path / "fixed.mcap"))) >= 8
+
+
+def _recover_cut(tmp_path: Path) -> tuple[bytes, Any]:
+    """The MCAP file of a recording of 8 frames, and a function that recovers given
+    bytes written as a file: (counts, frames read back)."""
+    frames = make_frames(8, w=320, h=240)
+    bag.write_bag(tmp_path / "b", frames)
+    whole = bag_file(tmp_path / "b").read_bytes()
+    f, out = tmp_path / "cut.mcap", tmp_path / "fixed.mcap"
+
+    def recovered(data: bytes) -> tuple[dict, list]:
+        f.write_bytes(data)
+        out.unlink(missing_ok=True)
+        kept = bag.recover_mcap(f, out)
+        return kept, list(FrameReader(out))
+
+    return whole, recovered
+
+
+def test_recover_takes_a_cut_ending_in_the_magic_bytes_for_a_cut(tmp_path):
+    """A cut that happens to end in the bytes of the MCAP magic (a message carrying
+    them) is still cut off: a closed file ends with a footer record, then the magic."""
+    whole, recovered = _recover_cut(tmp_path)
+    cut = whole[: len(whole) // 2]
+    kept, got = recovered(cut)
+    assert 0 < len(got) < 8
+    assert recovered(cut[:-8] + b"\x89MCAP0\r\n")[0]["bytes"] == kept["bytes"]
 
 
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):

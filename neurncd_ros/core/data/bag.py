@@ -429,10 +429,15 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
         head = f.read(17)
         if head[:8] != _MCAP_MAGIC or size < 17 or head[8] != 0x01:
             raise BagError(f"{src}: not an MCAP file (no MCAP magic and header record)")
-        f.seek(max(0, size - 8))
-        if f.read(8) == _MCAP_MAGIC and size >= 16 + 9 + 20:
-            raise BagError(f"{src}: the recording is complete (it ends with its closing "
-                           "MCAP magic): nothing to recover")
+        # A closed file ends with a footer record (opcode 0x02, length 20), then the
+        # magic; a cut may end in the magic's bytes alone (a message carrying them).
+        f.seek(max(0, size - 37))
+        tail = f.read(37)
+        if (size >= 8 + 9 + 37 and tail[-8:] == _MCAP_MAGIC
+                and tail[:9] == b"\x02" + struct.pack("<Q", 20)
+                and struct.unpack_from("<Q", tail, 9)[0] <= size - 37):
+            raise BagError(f"{src}: the recording is complete (it ends with its footer and "
+                           "closing MCAP magic): nothing to recover")
         counts = {"records": 0, "messages": 0, "chunks": 0, "size": size}
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_name(out.name + ".part")
