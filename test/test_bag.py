@@ -427,6 +427,25 @@ def test_recover_takes_a_cut_ending_in_the_magic_bytes_for_a_cut(tmp_path):
     assert recovered(cut[:-8] + b"\x89MCAP0\r\n")[0]["bytes"] == kept["bytes"]
 
 
+def test_recover_stops_at_a_zero_filled_tail_or_a_damaged_chunk(tmp_path):
+    """A crash can leave the file's length but not its data (zeros after the cut), and
+    rosbags writes uncompressed chunks without a checksum: a chunk whose records do not
+    fill it exactly, a record of no MCAP data-section kind (opcode 0) or a chunk header
+    too short for its fields ends the copy. The output reads, no Python error escapes,
+    and no partial output stays."""
+    import struct
+
+    whole, recovered = _recover_cut(tmp_path)
+    kept, got = recovered(whole[: len(whole) // 2])
+    good = whole[: kept["bytes"]]
+    for tail in (whole[len(good): len(good) + 100] + bytes(len(whole)),  # a chunk's
+                 bytes(1000),                      # start, then zeros; zeros after the
+                 b"\x06" + struct.pack("<Q", 10) + bytes(10)):  # last whole record;
+        counts, frames = recovered(good + tail)     # a damaged chunk header
+        assert counts["bytes"] == kept["bytes"] and len(frames) == len(got), counts
+    assert not (tmp_path / "fixed.mcap.part").exists()
+
+
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):
     """rosbag2 writes metadata.yaml when a recording ends: a folder without it got rosbags'
     "Expected metadata file ... does not exist" alone. The error names the storage file,
