@@ -419,6 +419,33 @@ def test_a_new_id_beside_the_surface_the_map_knows_joins_its_id(mapped):
         assert (out[seen] == old_id).mean() > 0.9 and (out[now & ~seen] == new_id).mean() > 0.9
 
 
+def test_touch_mapped_leaves_two_ids_the_frame_does_not_show_apart():
+    """``touch_mapped`` tests a frame's novel id against one only the map gives. Two ids
+    the frame shows neither of (it calls their surface wall) are not its pairs: the map
+    shows them side by side in every such frame, and where its coarse voxels widen them
+    over the wall between (a new depth, fresh voxels) they touch. A picture and the
+    window beside it, shown apart in every frame that showed them, stay apart."""
+    picture, window = NOVEL, NOVEL + 1
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x = _world_x(pose, depth)
+    lab = np.full((H, W), WALL, np.uint16)
+    lab[(x > -0.6) & (x < -0.03)] = picture  # 6 cm of wall between them
+    lab[(x > 0.03) & (x < 0.6)] = window
+    fus = LabelFusion(LabelFusionConfig())
+    for _ in range(4):
+        fus.update(lab, depth, INTR, pose, {picture, window})
+    wall = np.full((H, W), WALL, np.uint16)
+    farther = _plane_depth(pose, 1.035)  # another fine voxel: the coarse map fills the gap
+    touched = 0
+    for _ in range(3):
+        out = fus.update(wall, farther, INTR, pose, {picture, window})
+        touched += bool((out[:, 1:] != out[:, :-1])[(out[:, 1:] >= NOVEL_ID_START)
+                                                    & (out[:, :-1] >= NOVEL_ID_START)].any())
+    assert fus.aliases == {}
+    assert touched >= 2  # the case: the two touched in the fused labels
+
+
 def test_touching_ids_keep_the_id_shown_longer():
     """An object that appears as a sliver (here a window's panes, one frame alone) and
     whose bulk gets a fresh, larger id in the next frame keeps the id it was shown with

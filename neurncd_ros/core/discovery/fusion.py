@@ -103,10 +103,11 @@ throughout the frame, while the map keeps the old id on the part it knows (five 
 of votes): the two ids touch in the published labels only, and too little of the new
 id lies on the old surface for ``alias_share`` (tuning seed 505 at 300 frames: the
 ceiling 104 in frames 6-10, then 118 from frame 29 on, 0.63 stable). The fused labels'
-pairs with an id the frame does not show are tested too (pairs of two ids the frame
-shows were tested on its own labels; in the fused labels they touch more, as the coarse
-map widens novel regions, and a test over all fused pairs merged a picture into the
-window beside it on tuning seed 503, novel mIoU 34.5 -> 28.1). Tuning seeds 500-509
+pairs of an id the frame shows and one it does not are tested too (pairs of two ids
+the frame shows were tested on its own labels; in the fused labels they touch more, as
+the coarse map widens novel regions, and a test over all fused pairs merged a picture
+into the window beside it on tuning seed 503, novel mIoU 34.5 -> 28.1; two ids the
+frame does not show are no evidence of this frame). Tuning seeds 500-509
 (bench/results/ncd_sweep_label_fusion_touch_mapped[_frames300].json), off / on:
 all-class mIoU 82.68 / 82.92, novel 66.65 / 67.54, novel-id stability 0.934 / 0.944 at
 300 frames; at 150 frames every figure the same (81.20, 0.943).
@@ -396,8 +397,10 @@ class LabelFusion:
         """Alias novel ids the frame shows as parts of one surface (``touch_share``);
         ``lab``: the frame's labels as published (int64, known aliases applied), with at
         least two novel ids; or, with ``framed`` (``touch_mapped``), the fused labels,
-        of whose pairs only those with an id outside ``framed`` (the ids of the frame's
-        own labels) are tested.
+        of whose pairs only those of an id in ``framed`` (the ids of the frame's own
+        labels) and one outside it are tested: two ids the frame does not show would
+        count evidence in frames that did not show them, on regions the coarse map
+        widened.
 
         Markov clustering gives the parts of one object different ids when their colour
         and entropy differ (a window's bright panes and its frame): the object's pixels
@@ -449,8 +452,8 @@ class LabelFusion:
         size = np.bincount(lab.ravel(), minlength=outline.size)
         for key, n in zip(pairs.tolist(), border.tolist()):
             a, b = key >> 32, key & 0xFFFFFFFF
-            if framed is not None and a in framed and b in framed:
-                continue  # the frame's own pair: tested on the frame's labels
+            if framed is not None and (a in framed) == (b in framed):
+                continue  # the frame's own pair (tested on its labels), or none of its ids
             if n < self.cfg.touch_share * min(outline[a], outline[b]):
                 continue
             na, nb = normal(a), normal(b)
@@ -506,7 +509,7 @@ class LabelFusion:
             fused = out.astype(np.int64)
             framed = set(self._renamed(shown).tolist()) if shown.size else set()
             novel = set(np.unique(fused[fused >= NOVEL_ID_START]).tolist())
-            if len(novel) >= 2 and not novel <= framed:
+            if len(novel) >= 2 and novel & framed and not novel <= framed:
                 self._touching(fused, depth, points, mask, framed)
                 if self._alias:
                     out = self._renamed(fused).astype(np.uint16)
