@@ -446,6 +446,30 @@ def test_touch_mapped_leaves_two_ids_the_frame_does_not_show_apart():
     assert touched >= 2  # the case: the two touched in the fused labels
 
 
+def test_touching_evidence_counts_a_frame_once():
+    """``alias_frame_share`` counts frames: a pair that becomes another pair within a
+    frame, as one of its ids is aliased there, is no second frame of evidence. Three ids
+    touch in one frame (a window's top A, panes B and frame C); A joins B first, so the
+    pair A-C is B-C too: C touched B in 1 of the 3 frames that showed it, under the share
+    of 0.5, and keeps its id."""
+    a, b, c = NOVEL, NOVEL + 1, NOVEL + 2
+    pose = _wall_pose(0.0)
+    depth = _plane_depth(pose)
+    x, z = _world_x(pose, depth), _world_z(pose, depth)
+    low = (z > -0.5) & (z < 0)
+    apart = np.full((H, W), WALL, np.uint16)  # B and C with wall between
+    apart[low & (x > -0.7) & (x < 0.07)], apart[low & (x > 0.13) & (x < 0.6)] = b, c
+    fus = LabelFusion(LabelFusionConfig(coarse_voxel_size=0.0, alias_share=0.0,
+                                        touch_mapped=False))
+    for _ in range(2):
+        fus.update(apart, depth, INTR, pose, {b, c})
+    lab = np.full((H, W), WALL, np.uint16)
+    lab[(z >= 0) & (z < 0.5) & (x > -0.7) & (x < 0.6)] = a
+    lab[low & (x > -0.7) & (x < 0.1)], lab[low & (x >= 0.1) & (x < 0.6)] = b, c
+    fus.update(lab, depth, INTR, pose, {a, b, c})
+    assert fus.aliases == {a: b}
+
+
 def test_touching_ids_keep_the_id_shown_longer():
     """An object that appears as a sliver (here a window's panes, one frame alone) and
     whose bulk gets a fresh, larger id in the next frame keeps the id it was shown with

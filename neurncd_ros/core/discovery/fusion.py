@@ -244,6 +244,8 @@ class LabelFusion:
         self._shown: dict[int, int] = {}
         self._onto: dict[tuple[int, int], int] = {}
         self._touched: dict[tuple[int, int], int] = {}
+        # The evidence counted in this frame ((rule, src, dst)): a frame counts once.
+        self._counted: set[tuple[bool, int, int]] = set()
         if self._coarse is not None:
             self._coarse.reset()
 
@@ -474,8 +476,13 @@ class LabelFusion:
                          ) -> bool:
         """Count one more frame of evidence (in ``counts``) that novel id ``src`` is
         ``dst``; True once it came in at least ``alias_frame_share`` of the frames that
-        showed ``src`` (counted in :meth:`update`), the test both alias rules share."""
-        counts[(src, dst)] = counts.get((src, dst), 0) + 1
+        showed ``src`` (counted in :meth:`update`), the test both alias rules share. A
+        frame counts once: a pair tested again in it (the touching rule on the frame's
+        and the fused labels, or a pair that became this one as an id was aliased in the
+        frame) is no more evidence."""
+        if (counts is self._onto, src, dst) not in self._counted:
+            self._counted.add((counts is self._onto, src, dst))
+            counts[(src, dst)] = counts.get((src, dst), 0) + 1
         return counts[(src, dst)] >= self.cfg.alias_frame_share * self._shown.get(src, 1)
 
     # ------------------------------------------------------------ main entry
@@ -490,6 +497,7 @@ class LabelFusion:
         if labels.shape != np.shape(depth):
             raise ValueError(f"labels are {labels.shape} but depth is {np.shape(depth)}")
         points, mask = backproject(depth, intrinsics, pose)
+        self._counted = set()
         published = self._renamed(labels.astype(np.int64))
         shown = np.unique(published)
         shown = shown[shown >= NOVEL_ID_START]
