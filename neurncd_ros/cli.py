@@ -183,7 +183,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_recover(args: argparse.Namespace) -> int:
-    from .core.data.bag import bag_topics, recover_mcap
+    from .core.data.bag import bag_topics
+    from .core.data.mcap_recover import recover_mcap
 
     out = Path(args.out)
     if out.exists() and not args.overwrite:

@@ -13,6 +13,7 @@ import torch
 
 from neurncd_ros.core.camera import Intrinsics, look_at
 from neurncd_ros.core.data import bag
+from neurncd_ros.core.data.mcap_recover import recover_mcap
 from neurncd_ros.core.data.bag import BagError, FrameReader
 from neurncd_ros.core.topics import Topics
 from neurncd_ros.core.sync import tf_chain, tf_root
@@ -358,7 +359,7 @@ def test_a_cut_off_mcap_is_recovered_up_to_its_cut(tmp_path, zstd, capsys):
     src.write_bytes(whole[: len(whole) * 2 // 3])  # in place: the bag folder is cut off
     with pytest.raises(BagError, match="neurncd recover"):
         FrameReader(folder)
-    kept = bag.recover_mcap(folder, tmp_path / "fixed.mcap")
+    kept = recover_mcap(folder, tmp_path / "fixed.mcap")
     got = list(FrameReader(tmp_path / "fixed.mcap"))
     assert kept["chunks"] >= 2 and 0 < len(got) < len(frames), (kept, len(got))
     assert_same(frames[: len(got)], got)
@@ -373,12 +374,12 @@ def test_a_cut_off_mcap_is_recovered_up_to_its_cut(tmp_path, zstd, capsys):
 
     (tmp_path / "whole.mcap").write_bytes(whole)
     with pytest.raises(BagError, match="complete.*nothing to recover"):
-        bag.recover_mcap(tmp_path / "whole.mcap", tmp_path / "x.mcap")
+        recover_mcap(tmp_path / "whole.mcap", tmp_path / "x.mcap")
     (tmp_path / "stub.mcap").write_bytes(whole[:200])
     with pytest.raises(BagError, match="nothing to recover"):
-        bag.recover_mcap(tmp_path / "stub.mcap", tmp_path / "x.mcap")
+        recover_mcap(tmp_path / "stub.mcap", tmp_path / "x.mcap")
     with pytest.raises(BagError, match="not an MCAP"):
-        bag.recover_mcap(tmp_path / "b" / "metadata.yaml", tmp_path / "x.mcap")
+        recover_mcap(tmp_path / "b" / "metadata.yaml", tmp_path / "x.mcap")
     assert not (tmp_path / "x.mcap").exists()
 
 
@@ -392,7 +393,7 @@ def test_recover_reads_the_recording_chunk_by_chunk(tmp_path):
     os.truncate(src, src.stat().st_size * 2 // 3)
     tracemalloc.start()
     try:
-        kept = bag.recover_mcap(src, tmp_path / "fixed.mcap")
+        kept = recover_mcap(src, tmp_path / "fixed.mcap")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
@@ -411,7 +412,7 @@ def _recover_cut(tmp_path: Path) -> tuple[bytes, Any]:
     def recovered(data: bytes) -> tuple[dict, list]:
         f.write_bytes(data)
         out.unlink(missing_ok=True)
-        kept = bag.recover_mcap(f, out)
+        kept = recover_mcap(f, out)
         return kept, list(FrameReader(out))
 
     return whole, recovered

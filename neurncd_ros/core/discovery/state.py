@@ -94,9 +94,10 @@ def restore_fields(obj: Any, state: dict[str, Any], make: dict[str, type]) -> No
 
 def fusion_state(fusion: Any) -> dict[str, Any]:
     """A :class:`~.fusion.LabelFusion`'s votes, aliases and their evidence (and its coarse
-    map's) as plain data."""
+    map's) as plain data; not the evidence counted in the last frame (``_counted``),
+    which each frame starts anew."""
     coarse = fusion._coarse
-    return {"fields": fields_state(fusion, ("cfg", "_coarse")),
+    return {"fields": fields_state(fusion, ("cfg", "_coarse", "_counted")),
             "coarse": None if coarse is None else fusion_state(coarse)}
 
 
