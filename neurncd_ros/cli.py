@@ -186,10 +186,10 @@ def cmd_recover(args: argparse.Namespace) -> int:
     from .core.data.bag import bag_topics
     from .core.data.mcap_recover import recover_mcap
 
-    out = Path(args.out)
-    if out.exists() and not args.overwrite:
+    out, src = Path(args.out), Path(args.bag)
+    if out.exists() and not args.overwrite and not (src.exists() and out.samefile(src)):
         raise ValueError(f"{out} exists (--overwrite replaces it)")
-    kept = recover_mcap(args.bag, out)
+    kept = recover_mcap(src, out)  # refuses an --out that is the recording itself
     topics = bag_topics(out)
     n = sum(count for _, count in topics.values())
     print(f"recovered {plural(n, 'message')} on {plural(len(topics), 'topic')} from "

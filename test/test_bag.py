@@ -371,6 +371,14 @@ def test_a_cut_off_mcap_is_recovered_up_to_its_cut(tmp_path, zstd, capsys):
     assert_same(frames, list(FrameReader(tmp_path / "all.mcap")))
     assert main(["recover", str(cut), "--out", str(tmp_path / "all.mcap")]) == 1
     assert "exists (--overwrite replaces it)" in capsys.readouterr().err
+    # The recording itself as --out (a hard link too) is refused, whatever --overwrite.
+    os.link(cut, tmp_path / "link.mcap")
+    for same in (cut, tmp_path / "link.mcap"):
+        assert main(["recover", str(cut), "--out", str(same)]) == 1
+        assert "must not replace the recording" in capsys.readouterr().err
+    assert main(["recover", str(cut), "--out", str(cut), "--overwrite"]) == 1
+    assert "must not replace the recording" in capsys.readouterr().err
+    assert cut.read_bytes() == whole[:-30]
 
     (tmp_path / "whole.mcap").write_bytes(whole)
     with pytest.raises(BagError, match="complete.*nothing to recover"):

@@ -46,7 +46,7 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
         src = src / files[0]
     if not src.is_file():
         raise BagError(f"{src}: no such file")
-    if out.resolve() == src.resolve():
+    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
         raise BagError(f"{out}: the recovered copy must not replace the recording")
     size = src.stat().st_size
     with src.open("rb") as f:
