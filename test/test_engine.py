@@ -417,46 +417,6 @@ def test_keyframe_fusion_averages_the_views_that_see_a_point_and_skips_occluded_
     assert n.tolist() == [1.0] and np.allclose(fused, 1.0)
 
 
-def test_keyframe_fusion_weights_views_by_image_border_and_by_distance():
-    from types import SimpleNamespace
-
-    from neurncd_ros.core.camera import Intrinsics
-    from neurncd_ros.core.engine.views import fuse_keyframes
-
-    intr = Intrinsics.from_hfov(20, 10, 60.0)
-
-    def kf(z_cam, value):
-        pose = np.eye(4)
-        pose[2, 3] = 2.0 - z_cam  # on the optical axis, z_cam in front of the points' plane
-        return SimpleNamespace(pose=pose, intrinsics=intr,
-                               depth=np.full((10, 20), z_cam, np.float32),
-                               embedding=np.full((10, 20, 1), value, np.float32))
-
-    # Two points on the plane z = 2: one on the frame's axis (the keyframe's image centre),
-    # one that lands on the keyframe's first column (its border).
-    u0 = 0.0
-    x_edge = (u0 - intr.cx) / intr.fx * 2.0
-    points = np.array([[0.0, 0.0, 2.0], [x_edge, 0.0, 2.0]])
-    own = np.zeros((2, 1), np.float32)
-    plain, n, _ = fuse_keyframes(points, own, [kf(2.0, 4.0)], 0.05)
-    assert n.tolist() == [2.0, 2.0] and np.allclose(plain[:, 0], 2.0)
-    # border 0.2 of a 20-pixel width: 4 pixels; column 0 weighs 1/4, the centre 1.
-    fused, n, _ = fuse_keyframes(points, own, [kf(2.0, 4.0)], 0.05, border=0.2)
-    assert n.tolist() == [2.0, 2.0]  # the count is of views, not of weights
-    assert np.allclose(fused[:, 0], [2.0, 4.0 * 0.25 / 1.25])
-    # A keyframe at half the frame's distance: (2 / 1) ** 1 = 2 against the frame's 1.
-    near = kf(1.0, 3.0)
-    fused, _, _ = fuse_keyframes(points[:1], own[:1], [near], 0.05, distance_power=1.0,
-                                 own_depth=np.array([2.0]))
-    assert np.allclose(fused[0, 0], 3.0 * 2 / 3)
-    # ... clipped to 4 at power 3 (8 otherwise); the frame's depth is required.
-    fused, _, _ = fuse_keyframes(points[:1], own[:1], [near], 0.05, distance_power=3.0,
-                                 own_depth=np.array([2.0]))
-    assert np.allclose(fused[0, 0], 3.0 * 4 / 5)
-    with pytest.raises(ValueError, match="frame's depth"):
-        fuse_keyframes(points[:1], own[:1], [near], 0.05, distance_power=1.0)
-
-
 def test_fusion_inputs_reuse_each_views_probabilities_and_forget_views_no_longer_read():
     from types import SimpleNamespace
 
@@ -550,36 +510,6 @@ def test_depth_fusion_averages_what_the_keyframes_measured_of_each_point():
     fused, n = fuse_depth(truth, intr, view_pose, occluded, 0.05)
     assert 0.3 < (n == 2).mean() < 0.7 and (n[ok] >= 1).all()
     assert np.abs(fused - truth)[ok].max() < 0.05  # nothing pulled towards 1 m
-
-
-def test_depth_fusion_weighs_nearer_keyframes_by_their_smaller_noise():
-    """A keyframe halfway to a wall measures it with a quarter of the view's noise (noise
-    growing as the square of the depth): power 4, the inverse-variance weight, leaves
-    less error than the plain mean, which the view's own noise dominates."""
-    from types import SimpleNamespace
-
-    from neurncd_ros.core.camera import Intrinsics
-    from neurncd_ros.core.engine.views import fuse_depth
-
-    intr = Intrinsics.from_hfov(40, 30, 60.0)
-    rng = np.random.default_rng(1)
-    view_pose, kf_pose = np.eye(4), np.eye(4)
-    kf_pose[2, 3] = 2.0  # on the view's axis, 2 m nearer the wall at z = 4
-    view = (4.0 + rng.normal(0.0, 0.04, (30, 40))).astype(np.float32)
-    errors = {}
-    for power in (0.0, 4.0):
-        err = []
-        for _ in range(20):
-            kf = SimpleNamespace(pose=kf_pose, intrinsics=intr,
-                                 depth=(2.0 + rng.normal(0.0, 0.01, (30, 40))
-                                        ).astype(np.float32))
-            fused, n = fuse_depth(view, intr, view_pose, [kf], 0.2, distance_power=power)
-            seen = n == 2
-            assert seen.mean() > 0.2
-            err.append(np.sqrt(np.mean((fused[seen] - 4.0) ** 2)))
-        errors[power] = float(np.mean(err))
-    # plain mean: sqrt(0.04² + 0.01²) / 2 = 0.021; weights 1 : 16: about 0.0097
-    assert errors[0.0] > 0.018 and errors[4.0] < 0.012, errors
 
 
 def test_one_visibility_pass_serves_both_fusions_of_a_view():
@@ -728,24 +658,6 @@ def test_keyframe_fusion_also_reads_the_recent_frames_when_asked(cfg, backbone, 
         views[recent] = st.render_view(jobs[-1]).embedding
     # The frames not admitted as keyframes see the same points, so they change the mean.
     assert not np.allclose(views[0], views[4])
-
-
-def test_recent_frames_are_held_at_the_spacing_asked(cfg, backbone, frames):
-    """fusion_recent_spacing: a frame is held only that long after the last held one;
-    the held frames then span a longer stretch of the trajectory."""
-    sel = frames[:30]
-    records = {f.stamp_ns: _record(backbone, f) for f in sel}
-    held = {}
-    for spacing in (0.0, 0.1):
-        st = _stage(cfg, fallback="keyframes", fusion_recent=32, render_scale=0.5,
-                    fusion_recent_spacing=spacing)
-        for f in sel:
-            st.admit(f, records[f.stamp_ns])
-        held[spacing] = [r.stamp_ns for r in st._recent]
-    gaps = np.diff(held[0.1])
-    assert len(held[0.1]) >= 2 and gaps.min() >= 0.1e9
-    assert len(held[0.1]) < len(held[0.0])
-    assert set(held[0.1]) <= set(held[0.0])
 
 
 def test_a_stopped_training_thread_stops_the_views(cfg, backbone, frames):

@@ -68,7 +68,7 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from ..camera import Intrinsics, backproject, invert_pose, rays
+from ..camera import Intrinsics, backproject, rays
 from ..frame import Frame
 from ..params import param
 from ..sync import StampSync, max_jump_param
@@ -163,17 +163,6 @@ class MapperNodeConfig:
                                    "80.78 / 85.32 / 69.01 at 1, 80.95 / 85.44 / 69.30 at 2, "
                                    "80.93 / 85.46 / 69.19 at 3",
                                    lo=1.0, hi=100.0)
-    fusion_border: float = param(0.0, "fallback keyframes: a keyframe's weight in the "
-                                 "fusion ramps from near 0 at its image border to 1 this "
-                                 "share of its width inside it (the backbone sees an object "
-                                 "the border cuts only in part; 0 = every pixel counts "
-                                 "alike)", lo=0.0, hi=0.5)
-    fusion_distance_power: float = param(0.0, "fallback keyframes: a keyframe's weight in "
-                                         "the fusion is (the point's depth in the frame / "
-                                         "in the keyframe) to this power, clipped to "
-                                         "[1/4, 4]: a keyframe nearer the point sees it "
-                                         "with more pixels (0 = every view alike)",
-                                         lo=-4.0, hi=4.0)
     disagreement_weight: float = param(0.0, "fallback keyframes, fusion probabilities: add this "
                                        "times the views' disagreement (entropy of their mean "
                                        "minus their mean entropy) to the view's entropy, so "
@@ -191,23 +180,11 @@ class MapperNodeConfig:
                                "(bench/results/ncd.json at 8843fa0, rows neurncd and "
                                "fusion_unweighted: 81 against 64 ms)",
                                lo=0, hi=256)
-    fusion_recent_spacing: float = param(0.0, "fusion_recent: hold a frame only this long "
-                                         "(stamp time) after the last one held, so the "
-                                         "held frames span more viewpoints, whose errors "
-                                         "are less alike (0 = every frame)",
-                                         lo=0.0, hi=10.0, unit="s")
     depth_fusion: bool = param(True, "publish as the view's depth its measured depth averaged "
                                "with what the nearest keyframes (and recent frames) that see "
                                "the same points measured of them, at full size: discovery's "
                                "convex segments are cut on less sensor noise "
                                "(bench/results/ncd.json, rows neurncd and measured_depth)")
-    depth_fusion_power: float = param(0.0, "depth_fusion: weigh a keyframe's estimate of "
-                                      "a pixel's depth by (the view's depth / the "
-                                      "keyframe's) to this power, clipped to [1/16, 16]: 4 "
-                                      "is the inverse-variance weight of a sensor whose "
-                                      "noise grows as the square of the depth (Kinect), "
-                                      "seen from cameras that look alike; 0 the plain mean",
-                                      lo=-8.0, hi=8.0)
     coverage_keyframes: int = param(16, "keyframes nearest the view checked for coverage",
                                     lo=1, hi=4096)
     coverage_depth_tolerance: float = param(0.02, "a keyframe sees a point if its depth "
@@ -595,8 +572,7 @@ class MapperStage:
                     self.health.count("skipped_newer")
                 self._latest = job
                 if self.cfg.fusion_recent > 0 and (self.cfg.fallback == "keyframes"
-                                                   or self.cfg.depth_fusion) \
-                        and self._recent_due(frame.stamp_ns):
+                                                   or self.cfg.depth_fusion):
                     self._recent.append(StoredView(
                         frame.stamp_ns, frame.pose, frame.intrinsics, frame.depth,
                         np.asarray(record.embedding, np.float16)))
@@ -653,14 +629,6 @@ class MapperStage:
         gap += 1.0 - np.einsum("ni,i->n", poses[:, :3, 2], frame.pose[:3, 2])  # view angle
         return [kfs[i] for i in np.argsort(gap, kind="stable")[: self.cfg.coverage_keyframes]]
 
-    def _recent_due(self, stamp_ns: int) -> bool:
-        """Whether a non-keyframe frame is held for the fusion: ``fusion_recent_spacing``
-        of stamp time after the last one held (a stamp before it, a replay, is held)."""
-        if not self._recent or self.cfg.fusion_recent_spacing <= 0:
-            return True
-        dt = stamp_ns - self._recent[-1].stamp_ns
-        return not 0 <= dt < self.cfg.fusion_recent_spacing * 1e9
-
     def _recent_views(self, frame: Frame) -> list:
         """The held recent non-keyframe frames (``fusion_recent``), the frame itself left
         out."""
@@ -687,13 +655,6 @@ class MapperStage:
         out[mask] = w
         return out
 
-    @staticmethod
-    def _point_depths(frame: Frame, points: np.ndarray) -> np.ndarray:
-        """World ``points`` (N, 3)' depth in the frame's camera (the fusion's distance
-        weight, when no visibility test gives it)."""
-        M = invert_pose(frame.pose)
-        return (np.asarray(points, np.float64) @ M[2, :3] + M[2, 3]).astype(np.float32)
-
     def keyframe_fill(self, frame: Frame, backbone: np.ndarray, kfs: list, points, mask,
                       logit_channels: int, visibility=None) -> tuple[np.ndarray, Any]:
         """The frame's (h, w, C) backbone embedding averaged, point by point, with the
@@ -708,10 +669,7 @@ class MapperStage:
             points, backbone[mask], kfs, self.cfg.coverage_depth_tolerance,
             logit_channels if self.cfg.fusion == "probabilities" else None,
             self.cfg.disagreement_weight > 0, self._fusion_inputs, visibility,
-            self.cfg.own_view_weight, self.cfg.fusion_border,
-            self.cfg.fusion_distance_power,
-            None if visibility is not None or not self.cfg.fusion_distance_power
-            else self._point_depths(frame, points))
+            self.cfg.own_view_weight)
         self._fusion_inputs.keep(kfs)
         if h_views is None:
             return out, None
@@ -749,8 +707,7 @@ class MapperStage:
         view_depth, seen, tol = None, None, self.cfg.coverage_depth_tolerance
         if self.cfg.depth_fusion:  # discovery cuts its segments on it
             seen = view_visibility(fuse_depth_in, fuse_intr, f.pose, views, tol)
-            view_depth, _ = fuse_depth(fuse_depth_in, fuse_intr, f.pose, views, tol, seen,
-                                       self.cfg.depth_fusion_power)
+            view_depth, _ = fuse_depth(fuse_depth_in, fuse_intr, f.pose, views, tol, seen)
             view_depth = resize_to(view_depth, full_h, full_w, cv2.INTER_NEAREST)
         points, mask = backproject(depth, intr, f.pose) if views else (None, None)
         seen = seen if depth is fuse_depth_in else None  # the same test, at render_scale 1

@@ -236,9 +236,7 @@ def _seen(points: np.ndarray, keyframes: list, tolerance: float,
 def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                    tolerance: float, logit_channels: int | None = None,
                    view_entropy: bool = False, inputs: FusionInputs | None = None,
-                   visibility: ViewVisibility | None = None, own_weight: float = 1.0,
-                   border: float = 0.0, distance_power: float = 0.0,
-                   own_depth: np.ndarray | None = None
+                   visibility: ViewVisibility | None = None, own_weight: float = 1.0
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Per point, the mean of the frame's own embedding ``own`` (N, C) and the stored
     backbone embeddings of the keyframes that see it (the visibility test of
@@ -261,16 +259,6 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
     shift it by a pixel or two, which blurs small objects and borders; the frame itself
     sees every point where it is.
 
-    Two optional per-point view weights (1 = the plain mean):
-
-    - ``border`` (share of the keyframe's width): a keyframe's weight ramps from near 0 at
-      its image border to 1 this far inside it. The backbone sees an object the border
-      cuts only in part, and calls it worse there.
-    - ``distance_power`` p: a keyframe's weight is ``(z / z_k) ** p`` (clipped to [1/4, 4]),
-      ``z`` the point's depth in the frame and ``z_k`` in the keyframe. A keyframe nearer
-      the point sees it with more pixels. This needs the frame's depths: ``visibility``'s,
-      or ``own_depth`` (N,).
-
     This is the multi-view evidence the field is trained on, read directly: until
     the field has learnt a point, the view's embedding there is the mean over the
     views of it rather than the one frame's (a per-frame confusion, e.g. a picture
@@ -289,16 +277,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
         if h_sum is not None:
             h_sum *= own_weight
     n = np.ones(len(points), np.float32)
-    weighted = border > 0 or distance_power != 0
-    wsum = np.full(len(points), float(own_weight), np.float32)
-    if distance_power != 0:
-        own_z = visibility.depth if visibility is not None else own_depth
-        if own_z is None or len(own_z) != len(points):
-            raise ValueError("distance_power needs the frame's depth of every point "
-                             "(visibility or own_depth)")
-        own_z = np.asarray(own_z, np.float32)
     seen = _seen(points, keyframes, tolerance, visibility)
-    for kf, (idx, ui, vi, _, zp) in zip(keyframes, seen):
+    for kf, (idx, ui, vi, _, _) in zip(keyframes, seen):
         if not idx.size:
             continue
         h, w = kf.depth.shape
@@ -312,27 +292,11 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
                       else view_inputs(kf.embedding, C, S, h_sum is not None))
         rows = np.full(len(acc), len(probs) - 1, np.int64)  # unseen: the zero row
         rows[idx] = flat_i
-        n[idx] += 1.0
-        if weighted:
-            wk = np.ones(idx.size, np.float32)
-            if border > 0:
-                edge = np.minimum(np.minimum(ui, w - 1 - ui), np.minimum(vi, h - 1 - vi))
-                wk *= np.clip((edge + 1.0) / max(border * w, 1.0), 0.0, 1.0)
-            if distance_power != 0:
-                wk *= np.clip((own_z[idx] / np.maximum(zp, 1e-6)) ** distance_power,
-                              0.25, 4.0)
-            wpt = np.zeros(len(acc), np.float32)
-            wpt[idx] = wk
-            wsum += wpt
-            if h_sum is not None:
-                h_sum += ent[rows] * wpt
-            acc += np.take(probs, rows, axis=0) * wpt[:, None]
-            continue
-        wsum[idx] += 1.0
         if h_sum is not None:
             h_sum += ent[rows]
         acc += np.take(probs, rows, axis=0)
-    weights = wsum  # the views' weights, the frame's own counted own_weight times
+        n[idx] += 1.0
+    weights = n + (own_weight - 1.0)  # the views, the frame's own counted own_weight times
     acc /= weights[:, None]
     if S:
         acc[:, :S] = np.log(np.maximum(acc[:, :S], 1e-12))
@@ -340,8 +304,8 @@ def fuse_keyframes(points: np.ndarray, own: np.ndarray, keyframes: list,
 
 
 def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyframes: list,
-               tolerance: float, visibility: ViewVisibility | None = None,
-               distance_power: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+               tolerance: float, visibility: ViewVisibility | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The view's depth averaged, pixel by pixel, with what the keyframes that see the
     same point measured of it, and how many depths were averaged per pixel (1 where no
     keyframe sees it; 0 where the view has no depth, which stays 0).
@@ -357,14 +321,6 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
     stand out of a flat wall. Pixels without depth are not filled (no keyframe point is
     forward-projected): discovery leaves them unlabelled as before. ``visibility``: the
     test already done for this view and these keyframes (:func:`view_visibility`).
-
-    ``distance_power`` p weights a keyframe's estimate by ``(z / z_k) ** p`` (clipped to
-    [1/16, 16]) against the view's own 1, ``z`` the view's depth of the point and ``z_k``
-    the keyframe's. An error in ``z_k`` reaches the estimate scaled by (the point's view-z
-    from the keyframe's centre) / ``z_k``, about 1 for cameras that look alike. With axial
-    noise growing as the square of the depth (Kinect: the disparity step and its noise)
-    the estimate's variance then goes as ``z_k⁴`` against ``z⁴`` for the view's own:
-    p = 4 is the inverse-variance weight; 0 the plain mean.
     """
     if visibility is None:
         visibility = view_visibility(depth, intrinsics, pose, keyframes, tolerance)
@@ -372,23 +328,15 @@ def fuse_depth(depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, keyf
         raise ValueError("visibility was computed for other keyframes or another view size")
     mask, own = visibility.mask, visibility.depth
     acc, n = own.astype(np.float64), np.ones(len(own), np.float32)
-    wsum = np.ones(len(own), np.float64)
     for (idx, _, _, zk, zf), c_z in zip(visibility.seen, visibility.centre_z):
         if not idx.size:
             continue
         # c_z is the keyframe's centre in the view's camera: the view-z of (point - centre)
         # is own - c_z, so the estimate's view depth is own + (zk / z - 1) (own - c_z).
-        est = own[idx] + (zk / zf - 1.0) * (own[idx] - c_z)
-        if distance_power:
-            wk = np.clip((own[idx] / np.maximum(zk, 1e-6)) ** distance_power, 1 / 16, 16.0)
-            acc[idx] += wk * est
-            wsum[idx] += wk
-        else:
-            acc[idx] += est
-            wsum[idx] += 1.0
+        acc[idx] += own[idx] + (zk / zf - 1.0) * (own[idx] - c_z)
         n[idx] += 1.0
     out = np.zeros(mask.shape, np.float32)
-    out[mask] = acc / wsum
+    out[mask] = acc / n
     count = np.zeros(mask.shape, np.float32)
     count[mask] = n
     return out, count
