@@ -185,17 +185,28 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_recover(args: argparse.Namespace) -> int:
     from .core.data.bag import bag_topics
     from .core.data.mcap_recover import recover_mcap
+    from .core.data.sqlite_recover import is_sqlite, recover_sqlite
 
     out, src = Path(args.out), Path(args.bag)
     if out.exists() and not args.overwrite and not (src.exists() and out.samefile(src)):
         raise ValueError(f"{out} exists (--overwrite replaces it)")
-    kept = recover_mcap(src, out)  # refuses an --out that is the recording itself
+    # Both refuse an --out that is the recording itself.
+    sqlite = is_sqlite(src)
+    kept = recover_sqlite(src, out) if sqlite else recover_mcap(src, out)
     topics = bag_topics(out)
     n = sum(count for _, count in topics.values())
+    if sqlite:
+        parts = ([f"{plural(kept['damaged_ranges'], 'damaged range')} skipped"]
+                 if kept["damaged_ranges"] else [])
+        if kept["cut_after_id"]:
+            parts.append(f"nothing reads after message {kept['cut_after_id']} (the file "
+                         "was cut or damaged there)")
+        what = "; ".join(parts) or "every message read"
+    else:
+        what = (f"{kept['bytes']} of {kept['size']} bytes ({plural(kept['chunks'], 'whole chunk')})"
+                "; the cut-off record after them is dropped")
     print(f"recovered {plural(n, 'message')} on {plural(len(topics), 'topic')} from "
-          f"{args.bag} into {out}: {kept['bytes']} of {kept['size']} bytes "
-          f"({plural(kept['chunks'], 'whole chunk')}); the cut-off record after them is "
-          f"dropped. Check it with: neurncd info {out}")
+          f"{args.bag} into {out}: {what}. Check it with: neurncd info {out}")
     return 0
 
 
@@ -411,10 +422,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p)
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("recover", help="copy the part of a cut-off MCAP recording (killed "
-                       "recorder, full disk) that was written into a readable .mcap")
-    p.add_argument("bag", help="the cut-off .mcap file, or its bag folder")
-    p.add_argument("--out", required=True, help="the new .mcap file")
+    p = sub.add_parser("recover", help="copy the part of a cut-off or damaged recording "
+                       "(killed recorder, full disk, interrupted copy) that can be read into "
+                       "a new file: an MCAP one into a .mcap, an SQLite one into a .db3")
+    p.add_argument("bag", help="the damaged .mcap or .db3 file, or its bag folder")
+    p.add_argument("--out", required=True, help="the new .mcap (or .db3) file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     p.set_defaults(func=cmd_recover)
 

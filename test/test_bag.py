@@ -14,6 +14,7 @@ import torch
 from neurncd_ros.core.camera import Intrinsics, look_at
 from neurncd_ros.core.data import bag
 from neurncd_ros.core.data.mcap_recover import recover_mcap
+from neurncd_ros.core.data.sqlite_recover import recover_sqlite
 from neurncd_ros.core.data.bag import BagError, FrameReader
 from neurncd_ros.core.topics import Topics
 from neurncd_ros.core.sync import tf_chain, tf_root
@@ -320,7 +321,7 @@ def test_truncated_bag_raises_naming_file(tmp_path, storage):
     # what to do about it: the recording was cut off, and the tool that saves the rest
     assert ("the recording was cut off" if storage == "mcap" else "truncated or damaged") \
         in str(info.value)
-    assert ("neurncd recover" if storage == "mcap" else ".recover") in str(info.value)
+    assert "neurncd recover" in str(info.value)
     with pytest.raises(BagError, match=str(f)):
         FrameReader(f)
     with pytest.raises(BagError, match="bag"):
@@ -453,6 +454,125 @@ def test_recover_stops_at_a_zero_filled_tail_or_a_damaged_chunk(tmp_path):
         counts, frames = recovered(good + tail)     # a damaged chunk header
         assert counts["bytes"] == kept["bytes"] and len(frames) == len(got), counts
     assert not (tmp_path / "fixed.mcap.part").exists()
+
+
+def _sqlite_recording(tmp_path: Path) -> tuple[list[Frame], Path, bytes]:
+    """12 frames written as an SQLite bag: the frames, its .db3 file and its bytes."""
+    frames = make_frames(12, 80, 60, seed=5)
+    bag.write_bag(tmp_path / "rec", frames, storage="sqlite3")
+    f = bag_file(tmp_path / "rec")
+    return frames, f, f.read_bytes()
+
+
+def test_a_cut_off_sqlite_recording_is_recovered_up_to_its_cut(tmp_path, capsys):
+    """An SQLite bag cut at 60 % (an interrupted copy, a full disk) is refused whole, as
+    SQLite refuses a file shorter than its header says; `neurncd recover` copies every
+    message before the cut into a .db3 file that reads on its own, frame for frame
+    equal to the recording's first frames, and leaves the recording as it was."""
+    from neurncd_ros.cli import main
+
+    frames, f, whole = _sqlite_recording(tmp_path)
+    cut = tmp_path / "cut" / "cut.db3"
+    cut.parent.mkdir()
+    cut.write_bytes(whole[: len(whole) * 6 // 10])
+    with pytest.raises(BagError, match="neurncd recover"):
+        FrameReader(cut)
+    kept = recover_sqlite(cut, tmp_path / "fixed.db3")
+    assert cut.read_bytes() == whole[: len(whole) * 6 // 10]  # the recording untouched
+    assert kept["cut_after_id"] == kept["messages"] and kept["damaged_ranges"] == 0
+    got = list(FrameReader(tmp_path / "fixed.db3"))
+    assert 5 <= len(got) <= 8, len(got)
+    assert_same(frames[: len(got)], got, gt=False)
+    # the ground truth too, where the cut left it (the last frame may lose its instances)
+    assert_same(frames[: len(got) - 1], got[:-1])
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".fixed")]  # no staging
+    # The command, on the bag folder: it finds the .db3 inside and says what it kept.
+    shutil.copytree(tmp_path / "rec", tmp_path / "folder")
+    (tmp_path / "folder" / f.name).write_bytes(whole[: len(whole) * 6 // 10])
+    assert main(["recover", str(tmp_path / "folder"), "--out",
+                 str(tmp_path / "cli.db3")]) == 0
+    out = capsys.readouterr().out
+    assert f"recovered {kept['messages']} messages on 6 topics" in out
+    assert f"nothing reads after message {kept['messages']}" in out
+
+
+def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):
+    """Pages zeroed in the middle (a torn write) lose the messages on them; the messages
+    after them are read again, and every frame that comes back is exact."""
+    frames, f, whole = _sqlite_recording(tmp_path)
+    page = 4096
+    mid = len(whole) // 2 // page * page
+    torn = tmp_path / "torn.db3"
+    torn.write_bytes(whole[:mid] + bytes(3 * page) + whole[mid + 3 * page:])
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[:mid])
+    kept = recover_sqlite(torn, tmp_path / "fixed.db3")
+    upto = recover_sqlite(cut, tmp_path / "upto.db3")
+    assert kept["damaged_ranges"] >= 1 and kept["cut_after_id"] == 0
+    assert kept["messages"] > upto["messages"] + 12  # what follows the damage is kept
+    got = list(FrameReader(tmp_path / "fixed.db3"))
+    by_stamp = {fr.stamp_ns: fr for fr in frames}
+    assert len(got) > len(list(FrameReader(tmp_path / "upto.db3")))
+    assert_same([by_stamp[g.stamp_ns] for g in got], got, gt=False)
+
+
+def test_sqlite_recover_reads_the_write_ahead_log_beside_the_recording(tmp_path):
+    """rosbag2's resilient preset writes in WAL mode: messages committed to the -wal file
+    but not yet to the database are there too (the log is read with the copy, never
+    written into the recording)."""
+    import sqlite3
+    import subprocess
+    import sys
+
+    frames, f, whole = _sqlite_recording(tmp_path)
+    rec = tmp_path / "wal" / "w.db3"
+    rec.parent.mkdir()
+    rec.write_bytes(whole)
+    # Six more messages committed to the log, then the writer dies before a checkpoint.
+    script = ("import os, sqlite3, sys\n"
+              "c = sqlite3.connect(sys.argv[1])\n"
+              "c.execute('PRAGMA journal_mode=WAL'); c.execute('PRAGMA wal_autocheckpoint=0')\n"
+              "rows = c.execute('SELECT topic_id, timestamp, data FROM messages "
+              "WHERE id <= 6').fetchall()\n"
+              "c.executemany('INSERT INTO messages (topic_id, timestamp, data) "
+              "VALUES (?, ? + 10000000000, ?)', rows)\n"
+              "c.commit(); os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    wal = rec.with_name("w.db3-wal")
+    assert wal.stat().st_size > 0
+    os.truncate(rec, len(whole) * 6 // 10)
+    log = wal.read_bytes()
+    kept = recover_sqlite(rec, tmp_path / "fixed.db3")
+    assert wal.read_bytes() == log and rec.stat().st_size == len(whole) * 6 // 10
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[: len(whole) * 6 // 10])
+    upto = recover_sqlite(cut, tmp_path / "upto.db3")
+    # (the log also holds the pages the inserts rewrote: a row beyond the cut may return)
+    assert kept["messages"] >= upto["messages"] + 6 and kept["damaged_ranges"] == 1
+    con = sqlite3.connect(tmp_path / "fixed.db3")
+    late = con.execute("SELECT count(*) FROM messages WHERE timestamp > ?",
+                       (STAMP0 + 5 * 10**9,)).fetchone()[0]  # the log's, 10 s later
+    con.close()
+    assert late == 6
+
+
+def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
+    frames, f, whole = _sqlite_recording(tmp_path)
+    with pytest.raises(BagError, match="nothing wrong with it: nothing to recover"):
+        recover_sqlite(f, tmp_path / "x.db3")
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(BagError, match=r"is a \.db3 file: name it x\.db3"):
+        recover_sqlite(cut, tmp_path / "x.mcap")
+    with pytest.raises(BagError, match="must not replace the recording"):
+        recover_sqlite(cut, cut)
+    (tmp_path / "stub.db3").write_bytes(whole[:3000])
+    with pytest.raises(BagError, match="first page: nothing to recover"):
+        recover_sqlite(tmp_path / "stub.db3", tmp_path / "x.db3")
+    (tmp_path / "junk.db3").write_bytes(b"not a database at all" * 10)
+    with pytest.raises(BagError, match="not an SQLite file"):
+        recover_sqlite(tmp_path / "junk.db3", tmp_path / "x.db3")
+    assert not (tmp_path / "x.db3").exists()
 
 
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):

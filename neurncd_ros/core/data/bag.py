@@ -353,8 +353,8 @@ def _unreadable_hint(path: Path, err: Exception) -> str:
                 "recover` does); then give fixed.mcap here")
     if "malformed" in text or "not a database" in text:
         return ("; the SQLite file is truncated or damaged (recorder killed, interrupted "
-                "copy); `sqlite3 <file> .recover | sqlite3 fixed.db3` may save the part "
-                "that was written")
+                "copy, full disk). `neurncd recover <file> --out fixed.db3` copies the "
+                "messages that can still be read; then give fixed.db3 here")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
         files = _storage_files(path)
         if files:
