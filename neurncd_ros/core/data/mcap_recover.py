@@ -19,6 +19,23 @@ from .bag import BagError, _storage_files, _where
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
+def recording_file(src: Path, out: Path, suffix: str) -> Path:
+    """The storage file (``suffix``) a recovery reads: ``src``, or the one file of that
+    kind in the bag folder ``src``. Refuses a missing file, and an ``out`` that is the
+    recording itself (or a hard link to it): a recovery writes a new file."""
+    if src.is_dir():
+        files = [f for f in _storage_files(src) if f.endswith(suffix)]
+        if len(files) != 1:
+            raise BagError(f"{_where(src)}: recover needs one {suffix} file, the folder "
+                           f"holds {len(files)}")
+        src = src / files[0]
+    if not src.is_file():
+        raise BagError(f"{src}: no such file")
+    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
+        raise BagError(f"{out}: the recovered copy must not replace the recording")
+    return src
+
+
 def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
     """Copy the part of a cut-off MCAP recording that was written, so it can be read.
 
@@ -37,17 +54,8 @@ def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:
     Raises :class:`BagError` for a file that is no MCAP, is not cut off (nothing to
     recover), or whose cut leaves nothing to read.
     """
-    src, out = Path(src), Path(out)
-    if src.is_dir():
-        files = [f for f in _storage_files(src) if f.endswith(".mcap")]
-        if len(files) != 1:
-            raise BagError(f"{_where(src)}: recover needs one .mcap file, the folder holds "
-                           f"{len(files)}")
-        src = src / files[0]
-    if not src.is_file():
-        raise BagError(f"{src}: no such file")
-    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
-        raise BagError(f"{out}: the recovered copy must not replace the recording")
+    out = Path(out)
+    src = recording_file(Path(src), out, ".mcap")
     size = src.stat().st_size
     with src.open("rb") as f:
         head = f.read(17)

@@ -20,7 +20,8 @@ import struct
 import tempfile
 from pathlib import Path
 
-from .bag import BagError, _storage_files, _where
+from .bag import BagError, _storage_files
+from .mcap_recover import recording_file
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # The small tables copied whole; ``metadata`` (rosbag2's summary of the whole recording,
@@ -47,16 +48,10 @@ def is_sqlite(src: str | Path) -> bool:
     return src.suffix.lower() == ".db3"  # neither: the name says which it was meant to be
 
 
-def _source(src: Path) -> Path:
-    """The .db3 file of ``src`` (the file, or a bag folder holding one)."""
-    if src.is_dir():
-        files = [f for f in _storage_files(src) if f.endswith(".db3")]
-        if len(files) != 1:
-            raise BagError(f"{_where(src)}: recover needs one .db3 file, the folder holds "
-                           f"{len(files)}")
-        src = src / files[0]
-    if not src.is_file():
-        raise BagError(f"{src}: no such file")
+def _source(src: Path, out: Path) -> Path:
+    """The .db3 file of ``src`` (the file, or a bag folder holding one), checked to be
+    SQLite and not to be ``out`` (:func:`.mcap_recover.recording_file`)."""
+    src = recording_file(src, out, ".db3")
     with src.open("rb") as f:
         if f.read(16) != _SQLITE_MAGIC:
             raise BagError(f"{src}: not an SQLite file (no SQLite header)")
@@ -196,12 +191,11 @@ def recover_sqlite(src: str | Path, out: str | Path) -> dict[str, int]:
     file that is no SQLite, is intact (nothing to recover), or keeps no topic or no
     message.
     """
-    src, out = _source(Path(src)), Path(out)
+    out = Path(out)
+    src = _source(Path(src), out)
     if out.suffix.lower() != ".db3":
         raise BagError(f"{out}: the recovered copy of an SQLite recording is a .db3 file: "
                        f"name it {out.stem}.db3")
-    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
-        raise BagError(f"{out}: the recovered copy must not replace the recording")
     if _intact(src):
         raise BagError(f"{src}: SQLite finds nothing wrong with it: nothing to recover "
                        "(neurncd info reads it as it is)")
