@@ -480,6 +480,17 @@ def test_progress_bars_in_a_log_file_are_lines_with_messages_between(tmp_path):
     # throttled: 12 inner updates over 12 s of fake clock give a handful of lines, not 12
     assert sum(line.startswith("scenes") and "4/4" not in line for line in lines) <= 3
 
+    # A bar without a total (frames of a dataset folder, not counted first): its text
+    # never says n/n, so its last count is shown when it closes, once.
+    log = io.StringIO()
+    out = ProgressLines(log, interval=10.0, clock=lambda: now[0])
+    for _ in tqdm(iter(range(30)), file=out, desc="write rep.mcap", mininterval=0,
+                  unit="frame"):
+        now[0] += 0.01
+    lines = log.getvalue().splitlines()
+    assert lines[0].startswith("write rep.mcap: 0frame"), lines
+    assert lines[-1].startswith("write rep.mcap: 30frame") and len(lines) == 2, lines
+
     r = neurncd("synth", "--seed", 3, "--frames", 4, "--out", tmp_path / "s.db3", timeout=120)
     assert r.returncode == 0, r.stderr
     assert "\r" not in r.stderr and r.stderr.startswith("synth seed 3:"), repr(r.stderr)

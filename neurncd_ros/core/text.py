@@ -20,8 +20,9 @@ class ProgressLines:
     tqdm redraws a bar in place with carriage returns (and moves between nested bars with
     cursor codes): in a log file that is one endless line, with the next message glued to
     the bar. Through this stream each bar state becomes a line of its own, at most one per
-    ``interval`` seconds per bar plus its final one (n/n); a bar's clearing is dropped and
-    other text passes through unchanged."""
+    ``interval`` seconds per bar plus its final one (n/n; for a bar without a total, whose
+    text cannot say it is final, the state before the newline tqdm ends a closed bar
+    with); a bar's clearing is dropped and other text passes through unchanged."""
 
     _CODES = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
     _DONE = re.compile(r"(\S+)/(\S+) \[")
@@ -35,12 +36,16 @@ class ProgressLines:
         self.last: dict[str, float] = {}  # per bar (its description): when last shown
         self.shown = ""  # the last bar line shown, without its times
         self.after_bar = False  # the last write was tqdm's (a bar, its clearing, a move)
+        self.pending = ""  # the last state of a bar without a total, not shown
 
     def write(self, text: str) -> int:
         if "\r" not in text and "\x1b[" not in text:
             if self.after_bar and not text.strip("\n"):
+                if self.pending and "\n" in text:  # a bar without a total closed
+                    self.stream.write(self.pending + "\n")
+                    self.shown, self.pending = self.pending.rsplit(" [", 1)[0], ""
                 return len(text)  # a move down to a nested bar's line
-            self.after_bar, self.shown = False, ""
+            self.after_bar, self.shown, self.pending = False, "", ""
             return self.stream.write(text)
         self.after_bar = True
         for part in re.split(r"[\r\n]", self._CODES.sub("", text)):
@@ -59,8 +64,10 @@ class ProgressLines:
         now = self.clock()
         if (done and done.group(1) == done.group(2)) or \
                 now - self.last.get(name, -float("inf")) >= self.interval:
-            self.last[name], self.shown = now, count
+            self.last[name], self.shown, self.pending = now, count, ""
             self.stream.write(state + "\n")
+        elif done is None:
+            self.pending = state
 
     def isatty(self) -> bool:
         return False
