@@ -196,12 +196,14 @@ def cmd_recover(args: argparse.Namespace) -> int:
     topics = bag_topics(out)
     n = sum(count for _, count in topics.values())
     if sqlite:
-        parts = ([f"{plural(kept['damaged_ranges'], 'damaged range')} skipped"]
-                 if kept["damaged_ranges"] else [])
-        if kept["cut_after_id"]:
-            parts.append(f"nothing reads after message {kept['cut_after_id']} (the file "
-                         "was cut or damaged there)")
-        what = "; ".join(parts) or "every message read"
+        what = (f"messages {kept['first_id']}-{kept['last_id']}, "
+                + (f"{kept['missing']} between them lost or damaged"
+                   if kept["missing"] else "none missing between them")
+                + (f"; {plural(kept['unreadable'], 'message')} whose data pages are lost"
+                   if kept["unreadable"] else "")
+                + (f"; {plural(kept['dropped'], 'message')} of no listed topic dropped"
+                   if kept["dropped"] else "")
+                + "; any after the last were cut off or damaged")
     else:
         what = (f"{kept['bytes']} of {kept['size']} bytes ({plural(kept['chunks'], 'whole chunk')})"
                 "; the cut-off record after them is dropped")

@@ -479,7 +479,7 @@ def test_a_cut_off_sqlite_recording_is_recovered_up_to_its_cut(tmp_path, capsys)
         FrameReader(cut)
     kept = recover_sqlite(cut, tmp_path / "fixed.db3")
     assert cut.read_bytes() == whole[: len(whole) * 6 // 10]  # the recording untouched
-    assert kept["cut_after_id"] == kept["messages"] and kept["damaged_ranges"] == 0
+    assert (kept["first_id"], kept["missing"], kept["last_id"]) == (1, 0, kept["messages"])
     got = list(FrameReader(tmp_path / "fixed.db3"))
     assert 5 <= len(got) <= 8, len(got)
     assert_same(frames[: len(got)], got, gt=False)
@@ -493,7 +493,7 @@ def test_a_cut_off_sqlite_recording_is_recovered_up_to_its_cut(tmp_path, capsys)
                  str(tmp_path / "cli.db3")]) == 0
     out = capsys.readouterr().out
     assert f"recovered {kept['messages']} messages on 6 topics" in out
-    assert f"nothing reads after message {kept['messages']}" in out
+    assert f"messages 1-{kept['messages']}, none missing between them" in out
 
 
 def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):
@@ -508,7 +508,7 @@ def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):
     cut.write_bytes(whole[:mid])
     kept = recover_sqlite(torn, tmp_path / "fixed.db3")
     upto = recover_sqlite(cut, tmp_path / "upto.db3")
-    assert kept["damaged_ranges"] >= 1 and kept["cut_after_id"] == 0
+    assert kept["missing"] >= 1 and kept["last_id"] == 12 * 6  # the last message is kept
     assert kept["messages"] > upto["messages"] + 12  # what follows the damage is kept
     got = list(FrameReader(tmp_path / "fixed.db3"))
     by_stamp = {fr.stamp_ns: fr for fr in frames}
@@ -548,12 +548,82 @@ def test_sqlite_recover_reads_the_write_ahead_log_beside_the_recording(tmp_path)
     cut.write_bytes(whole[: len(whole) * 6 // 10])
     upto = recover_sqlite(cut, tmp_path / "upto.db3")
     # (the log also holds the pages the inserts rewrote: a row beyond the cut may return)
-    assert kept["messages"] >= upto["messages"] + 6 and kept["damaged_ranges"] == 1
+    assert kept["messages"] >= upto["messages"] + 6 and kept["last_id"] == 12 * 6 + 6
     con = sqlite3.connect(tmp_path / "fixed.db3")
     late = con.execute("SELECT count(*) FROM messages WHERE timestamp > ?",
                        (STAMP0 + 5 * 10**9,)).fetchone()[0]  # the log's, 10 s later
     con.close()
     assert late == 6
+
+
+def _small_messages_db(tmp_path: Path, ids) -> tuple[Path, bytes]:
+    """An SQLite bag (the package's own tables) of 100-byte messages with these ids, so
+    that a page holds a few dozen of them: the file and its bytes."""
+    import sqlite3
+
+    _, f, _ = _sqlite_recording(tmp_path)
+    src = sqlite3.connect(f)
+    path = tmp_path / "small.db3"
+    dst = sqlite3.connect(path)
+    for (sql,) in src.execute("SELECT sql FROM sqlite_master WHERE sql IS NOT NULL"):
+        dst.execute(sql)
+    topics = src.execute("SELECT * FROM topics").fetchall()
+    dst.executemany(f"INSERT INTO topics VALUES ({', '.join('?' * len(topics[0]))})", topics)
+    rng = np.random.default_rng(0)
+    dst.executemany("INSERT INTO messages VALUES (?, ?, ?, ?)",
+                    [(i, topics[0][0], STAMP0 + i, rng.bytes(100)) for i in ids])
+    dst.commit()
+    dst.close()
+    src.close()
+    return path, path.read_bytes()
+
+
+def _readable_ids(path: Path, ids) -> set[int]:
+    """The ids SQLite itself still returns one by one from a damaged file (its B-tree's
+    interior pages intact): what a recovery must keep at least."""
+    import sqlite3
+
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    ok = set()
+    for i in ids:
+        try:
+            if con.execute("SELECT id FROM messages WHERE id = ?", (i,)).fetchone():
+                ok.add(i)
+        except sqlite3.DatabaseError:
+            pass
+    con.close()
+    return ok
+
+
+@pytest.mark.parametrize("ids,zeroed", [
+    (range(1, 3001), [(104, 108)]),             # a long damaged range, then a short tail
+    (range(1, 3001), [(60, 63), (66, 70)]),     # two damaged ranges, rows between them
+    (range(1000, 3_000_001, 1000), [(40, 43)]),  # ids with gaps
+])
+def test_sqlite_recover_keeps_every_row_off_the_damaged_pages(tmp_path, ids, zeroed):
+    """Message rows are read off every page of the file, not through the B-tree: what
+    lies between or after damaged pages comes back whatever the ids, each row exact."""
+    import sqlite3
+
+    path, whole = _small_messages_db(tmp_path, ids)
+    page = 4096
+    buf = bytearray(whole)
+    for a, b in zeroed:  # pages a..b-1 (1-based) torn to zeros
+        buf[(a - 1) * page:(b - 1) * page] = bytes((b - a) * page)
+    torn = tmp_path / "torn.db3"
+    torn.write_bytes(bytes(buf))
+    must = _readable_ids(torn, ids)
+    assert 0 < len(must) < len(ids)
+    kept = recover_sqlite(torn, tmp_path / "fixed.db3")
+    con = sqlite3.connect(tmp_path / "fixed.db3")
+    got = dict(((i, d) for i, d in con.execute("SELECT id, data FROM messages")))
+    con.close()
+    assert must <= set(got), sorted(must - set(got))[:5]
+    assert kept["messages"] == len(got) and kept["last_id"] == max(ids)
+    orig = sqlite3.connect(path)
+    for i, data in orig.execute("SELECT id, data FROM messages"):
+        assert got.get(i, data) == data  # every row kept is the row written
+    orig.close()
 
 
 def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
@@ -572,7 +642,24 @@ def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
     (tmp_path / "junk.db3").write_bytes(b"not a database at all" * 10)
     with pytest.raises(BagError, match="not an SQLite file"):
         recover_sqlite(tmp_path / "junk.db3", tmp_path / "x.db3")
+    bad = bytearray(whole[: len(whole) // 2])
+    bad[16:18] = b"\x00\x00"  # a page size of 0
+    (tmp_path / "ps0.db3").write_bytes(bytes(bad))
+    with pytest.raises(BagError, match="header is damaged"):
+        recover_sqlite(tmp_path / "ps0.db3", tmp_path / "new" / "deeper" / "x.db3")
+    assert not (tmp_path / "new").exists()  # the folders it made for the output are gone
+    (tmp_path / "folder.db3").mkdir()
+    with pytest.raises(BagError, match="is a folder"):
+        recover_sqlite(cut, tmp_path / "folder.db3")
     assert not (tmp_path / "x.db3").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging
+    # A path with URI characters in it is a path, not a URI (# is no fragment).
+    odd = tmp_path / "run#2?x" / "cut.db3"
+    odd.parent.mkdir()
+    odd.write_bytes(whole[: len(whole) // 2])
+    assert recover_sqlite(odd, tmp_path / "odd.db3")["messages"] > 0
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("run")) == \
+        ["run#2?x"]
 
 
 def test_a_bag_folder_without_metadata_names_its_file_and_reindex(tmp_path):

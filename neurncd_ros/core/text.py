@@ -22,7 +22,9 @@ class ProgressLines:
     the bar. Through this stream each bar state becomes a line of its own, at most one per
     ``interval`` seconds per bar plus its final one (n/n; for a bar without a total, whose
     text cannot say it is final, the state before the newline tqdm ends a closed bar
-    with); a bar's clearing is dropped and other text passes through unchanged."""
+    with); a bar's clearing is dropped and other text passes through unchanged. (A bar
+    without a total with other bars nested below it would show a line per inner redraw,
+    as tqdm's move down to them is that newline too; no command nests one.)"""
 
     _CODES = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
     _DONE = re.compile(r"(\S+)/(\S+) \[")
