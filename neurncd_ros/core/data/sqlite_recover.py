@@ -186,18 +186,29 @@ def _varint(buf: bytes, pos: int) -> tuple[int, int]:
 _INT_BYTES = {1: 1, 2: 2, 3: 3, 4: 4, 5: 6, 6: 8}
 
 
-def _message(payload: bytes) -> tuple[int, int, bytes] | None:
-    """A ``messages`` record (id as the rowid, so NULL; topic_id; timestamp; data) as
-    (topic_id, timestamp, data); None for a record of another shape (another table's row,
-    or garbage)."""
+def _message_types(payload: bytes) -> tuple[list[int], int] | None:
+    """The serial types of a record whose shape is a ``messages`` row (id as the rowid,
+    so NULL; topic_id and timestamp integers; data a blob) and where its body starts;
+    None for another shape (another table's row, or garbage). The header is at the
+    record's start, so the part of a payload on its leaf page is enough."""
     size, pos = _varint(payload, 0)
     types = []
     while pos < size and len(types) < 5:
         t, pos = _varint(payload, pos)
         types.append(t)
-    if len(types) != 4 or types[0] != 0 or types[3] < 12 or types[3] % 2:
+    if len(types) != 4 or types[0] != 0 or types[3] < 12 or types[3] % 2 or \
+            not all(t in _INT_BYTES or t in (8, 9) for t in types[1:3]):
         return None
-    values, at = [], size
+    return types, size
+
+
+def _message(payload: bytes) -> tuple[int, int, bytes] | None:
+    """A ``messages`` record as (topic_id, timestamp, data); None for another shape."""
+    shape = _message_types(payload)
+    if shape is None:
+        return None
+    types, at = shape
+    values = []
     for t in types[1:3]:
         if t in (8, 9):
             values.append(t - 8)
@@ -205,8 +216,6 @@ def _message(payload: bytes) -> tuple[int, int, bytes] | None:
             n = _INT_BYTES[t]
             values.append(int.from_bytes(payload[at:at + n], "big", signed=True))
             at += n
-        else:
-            return None
     blob = payload[at:at + (types[3] - 12) // 2]
     if len(blob) != (types[3] - 12) // 2 or at + len(blob) != len(payload):
         return None
@@ -221,6 +230,7 @@ def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
     chain of overflow pages, each naming the next. A stale copy of a row (a page freed
     when the tree was rebalanced) has the same id: the caller keeps one."""
     pages = path.stat().st_size // page
+    largest = pages * usable  # no payload is longer than the file
     max_local = usable - 35
     min_local = (usable - 12) * 32 // 255 - 23
     with path.open("rb") as f:
@@ -241,6 +251,8 @@ def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
                 try:
                     size, pos = _varint(data, off)
                     rowid, pos = _varint(data, pos)
+                    if size > largest:  # garbage where a cell should be
+                        continue
                     if size <= max_local:
                         local, overflow = size, 0
                     else:
@@ -259,7 +271,8 @@ def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
                         payload += more[4:usable][: size - len(payload)]
                         seen += 1
                     if len(payload) != size:
-                        counts["unreadable"] += 1
+                        if _message_types(bytes(payload)) is not None:
+                            counts["unreadable"] += 1  # a message whose data is lost
                         continue
                     row = _message(bytes(payload))
                 except IndexError:  # a torn cell runs off its page
