@@ -626,6 +626,78 @@ def test_sqlite_recover_keeps_every_row_off_the_damaged_pages(tmp_path, ids, zer
     orig.close()
 
 
+def test_sqlite_recover_leaves_deleted_rows_deleted(tmp_path):
+    """Rows deleted from a recording (a user's edit: rosbag2 never deletes) stay deleted:
+    pages on the freelist, which still hold them, are not read, nor pages past the end a
+    write-ahead log's last commit gives the database."""
+    import sqlite3
+
+    path, _ = _small_messages_db(tmp_path, range(1, 3001))
+    con = sqlite3.connect(path)
+    con.execute("PRAGMA secure_delete=off")  # freed pages keep their old rows
+    con.execute("DELETE FROM messages WHERE id BETWEEN 1000 AND 1999")
+    con.commit()
+    assert con.execute("PRAGMA freelist_count").fetchone()[0] > 0
+    con.close()
+    whole = path.read_bytes()
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[: len(whole) * 9 // 10])
+    kept = recover_sqlite(cut, tmp_path / "fixed.db3")
+    con = sqlite3.connect(tmp_path / "fixed.db3")
+    ids = {i for (i,) in con.execute("SELECT id FROM messages")}
+    con.close()
+    assert not ids & set(range(1000, 2000)) and kept["messages"] == len(ids) > 1000
+    # The same delete committed only to a write-ahead log, with auto-vacuum: the log's
+    # last commit ends the database before pages that still hold the deleted rows.
+    rec = tmp_path / "wal" / "w.db3"
+    rec.parent.mkdir()
+    script = ("import os, sqlite3, sys\n"
+              "c = sqlite3.connect(sys.argv[1])\n"
+              "c.execute('PRAGMA auto_vacuum=FULL')\n"
+              "c.execute('CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, "
+              "type TEXT NOT NULL, serialization_format TEXT NOT NULL, "
+              "offered_qos_profiles TEXT NOT NULL)')\n"
+              "c.execute('CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER "
+              "NOT NULL, timestamp INTEGER NOT NULL, data BLOB NOT NULL)')\n"
+              "c.execute(\"INSERT INTO topics VALUES (1, '/t', 'std_msgs/msg/String', "
+              "'cdr', '')\")\n"
+              "c.executemany('INSERT INTO messages VALUES (?, 1, ?, ?)', "
+              "[(i, i, os.urandom(100)) for i in range(1, 3001)])\n"
+              "c.commit(); c.execute('PRAGMA journal_mode=WAL')\n"
+              "c.execute('PRAGMA wal_autocheckpoint=0')\n"
+              "c.execute('DELETE FROM messages WHERE id > 1000'); c.commit()\n"
+              "os._exit(0)\n")
+    import subprocess
+    import sys
+    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    kept = recover_sqlite(rec, tmp_path / "walfixed.db3")
+    assert (kept["messages"], kept["last_id"]) == (1000, 1000)
+
+
+def test_sqlite_recover_applies_a_log_holding_page_one_to_a_cut_file(tmp_path):
+    """A log frame of page 1 (any committed change writes it) must not bring back the
+    page count of the whole file into a cut copy: the rows on the pages that are there
+    come back, as without the log."""
+    import subprocess
+    import sys
+
+    path, whole = _small_messages_db(tmp_path, range(1, 3001))
+    rec = tmp_path / "wal" / "w.db3"
+    rec.parent.mkdir()
+    rec.write_bytes(whole)
+    script = ("import os, sqlite3, sys\n"
+              "c = sqlite3.connect(sys.argv[1])\n"
+              "c.execute('PRAGMA journal_mode=WAL'); c.execute('PRAGMA wal_autocheckpoint=0')\n"
+              "c.execute('PRAGMA user_version=7'); c.commit(); os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    os.truncate(rec, len(whole) // 2)
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[: len(whole) // 2])
+    with_log = recover_sqlite(rec, tmp_path / "a.db3")
+    without = recover_sqlite(cut, tmp_path / "b.db3")
+    assert with_log["messages"] == without["messages"] > 1000
+
+
 def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
     frames, f, whole = _sqlite_recording(tmp_path)
     with pytest.raises(BagError, match="nothing wrong with it: nothing to recover"):

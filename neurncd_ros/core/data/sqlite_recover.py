@@ -90,10 +90,12 @@ def _intact(src: Path) -> bool:
 
 
 def _stage_copy(src: Path, stage: Path) -> tuple[Path, int]:
-    """Copy the file's whole pages (and any -wal or -journal beside it, which SQLite
-    replays or rolls back when the copy opens) into ``stage``, with the header's page
-    count set to the pages copied: SQLite refuses a file shorter than its header says
-    even where the pages a query needs are all there. Returns the copy and its pages."""
+    """Copy the file's whole pages into ``stage``, with the committed frames of a -wal
+    beside it written in (:func:`_apply_wal`; the copy then ends where the log's last
+    commit says the database does) and a -journal beside it copied (SQLite rolls it back
+    when the copy opens), and the header's page count set to the pages there: SQLite
+    refuses a file shorter than its header says even where the pages a query needs are
+    all there. Returns the copy and its pages."""
     with src.open("rb") as f:
         header = f.read(100)
         if len(header) < 100:
@@ -112,14 +114,17 @@ def _stage_copy(src: Path, stage: Path) -> tuple[Path, int]:
                     break
                 out.write(block)
                 left -= len(block)
-            out.seek(28)
-            out.write(struct.pack(">I", pages))
     journal = src.with_name(src.name + "-journal")
     if journal.is_file():  # SQLite rolls a hot journal back when the copy opens
         shutil.copyfile(journal, copy.with_name(copy.name + "-journal"))
     wal = src.with_name(src.name + "-wal")
-    if wal.is_file():
-        _apply_wal(wal, copy, page)
+    size = _apply_wal(wal, copy, page) if wal.is_file() else 0
+    with copy.open("r+b") as out:
+        if size and size * page < out.seek(0, os.SEEK_END):
+            out.truncate(size * page)  # pages past the log's end: freed, not data
+        pages = out.seek(0, os.SEEK_END) // page
+        out.seek(28)  # after the log, whose page 1 may say otherwise
+        out.write(struct.pack(">I", pages))
     return copy, pages
 
 
@@ -137,7 +142,8 @@ def _apply_wal(wal: Path, copy: Path, page: int) -> int:
     """Write the committed transactions of a write-ahead log into the staged copy, as a
     checkpoint would (SQLite itself refuses to checkpoint into a damaged file): frames
     whose salts and running checksum hold, up to the last commit frame; a torn or
-    uncommitted tail is left out. Returns the frames written."""
+    uncommitted tail is left out. Returns the database's size in pages after the last
+    commit (0: no commit in the log)."""
     with wal.open("rb") as f:
         head = f.read(32)
         if len(head) < 32:
@@ -150,7 +156,7 @@ def _apply_wal(wal: Path, copy: Path, page: int) -> int:
         if sums != (c0, c1):
             return 0
         pending: list[tuple[int, bytes]] = []
-        written = 0
+        size = 0
         with copy.open("r+b") as out:
             while True:
                 frame = f.read(24 + page)
@@ -167,9 +173,8 @@ def _apply_wal(wal: Path, copy: Path, page: int) -> int:
                     for n, data in pending:
                         out.seek((n - 1) * page)
                         out.write(data)
-                    written += len(pending)
-                    pending = []
-    return written
+                    size, pending = commit, []
+    return size
 
 
 def _varint(buf: bytes, pos: int) -> tuple[int, int]:
@@ -222,15 +227,38 @@ def _message(payload: bytes) -> tuple[int, int, bytes] | None:
     return values[0], values[1], blob
 
 
+def _freelist(path: Path, page: int, pages: int) -> set[int]:
+    """The pages on the database's freelist (header offset 32: the first trunk page; each
+    trunk names the next trunk, then its leaf pages), as far as it can be read."""
+    free: set[int] = set()
+    with path.open("rb") as f:
+        f.seek(32)
+        trunk = int.from_bytes(f.read(4), "big")
+        while 1 < trunk <= pages and trunk not in free:
+            free.add(trunk)
+            f.seek((trunk - 1) * page)
+            data = f.read(page)
+            count = int.from_bytes(data[4:8], "big")
+            if count > (page - 8) // 4:
+                break  # a damaged trunk
+            free.update(int.from_bytes(data[8 + 4 * i:12 + 4 * i], "big")
+                        for i in range(count))
+            trunk = int.from_bytes(data[:4], "big")
+    return free
+
+
 def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
     """(id, topic_id, timestamp, data) of every ``messages`` row on the file's table-leaf
     pages, in page order. Each leaf page is read on its own: a page lost or torn costs
     its rows (counted in ``counts["unreadable"]`` where a row's overflow chain is
     broken), not the rows after it. A payload too long for its page continues on a
-    chain of overflow pages, each naming the next. A stale copy of a row (a page freed
-    when the tree was rebalanced) has the same id: the caller keeps one."""
+    chain of overflow pages, each naming the next. Pages on the freelist are skipped
+    (:func:`_freelist`): they can hold rows deleted or rewritten since (rosbag2 does
+    neither, but a file may have been edited); a copy of a row left on a live page by a
+    rebalance has the same id and bytes, and the caller keeps one."""
     pages = path.stat().st_size // page
     largest = pages * usable  # no payload is longer than the file
+    free = _freelist(path, page, pages)
     max_local = usable - 35
     min_local = (usable - 12) * 32 // 255 - 23
     with path.open("rb") as f:
@@ -239,6 +267,8 @@ def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
             return f.read(page)
 
         for number in range(1, pages + 1):
+            if number in free:  # freed pages keep rows deleted or since rewritten
+                continue
             data = read_page(number)
             base = 100 if number == 1 else 0
             if len(data) < page or data[base] != _TABLE_LEAF:
@@ -277,8 +307,8 @@ def _message_rows(path: Path, page: int, usable: int, counts: dict[str, int]):
                     row = _message(bytes(payload))
                 except IndexError:  # a torn cell runs off its page
                     continue
-                if row is not None and 0 < rowid < 1 << 63:
-                    yield (rowid, *row)
+                if row is not None:
+                    yield (rowid - (1 << 64) if rowid >= 1 << 63 else rowid, *row)
 
 
 def _read_tables(copy: Path, src: Path) -> tuple[list, dict[str, list]]:
