@@ -516,28 +516,36 @@ def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):
     assert_same([by_stamp[g.stamp_ns] for g in got], got, gt=False)
 
 
+def _commit_to_log_and_die(db: Path, statement: str, setup: str = "") -> None:
+    """In another process: ``setup`` (Python on connection ``c``), then the database in
+    WAL mode with no automatic checkpoint, ``statement`` committed to the log, and the
+    process killed before it closes the database (the log stays beside it)."""
+    import subprocess
+    import sys
+
+    script = ("import os, sqlite3, sys\n"
+              "c = sqlite3.connect(sys.argv[1])\n" + setup +
+              "c.execute('PRAGMA journal_mode=WAL'); c.execute('PRAGMA wal_autocheckpoint=0')\n"
+              f"{statement}\n"
+              "c.commit(); os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", script, str(db)], check=True)
+
+
 def test_sqlite_recover_reads_the_write_ahead_log_beside_the_recording(tmp_path):
     """rosbag2's resilient preset writes in WAL mode: messages committed to the -wal file
     but not yet to the database are there too (the log is read with the copy, never
     written into the recording)."""
     import sqlite3
-    import subprocess
-    import sys
 
     frames, f, whole = _sqlite_recording(tmp_path)
     rec = tmp_path / "wal" / "w.db3"
     rec.parent.mkdir()
     rec.write_bytes(whole)
     # Six more messages committed to the log, then the writer dies before a checkpoint.
-    script = ("import os, sqlite3, sys\n"
-              "c = sqlite3.connect(sys.argv[1])\n"
-              "c.execute('PRAGMA journal_mode=WAL'); c.execute('PRAGMA wal_autocheckpoint=0')\n"
-              "rows = c.execute('SELECT topic_id, timestamp, data FROM messages "
-              "WHERE id <= 6').fetchall()\n"
-              "c.executemany('INSERT INTO messages (topic_id, timestamp, data) "
-              "VALUES (?, ? + 10000000000, ?)', rows)\n"
-              "c.commit(); os._exit(0)\n")
-    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    _commit_to_log_and_die(rec, "c.executemany('INSERT INTO messages (topic_id, timestamp, "
+                           "data) VALUES (?, ? + 10000000000, ?)', c.execute('SELECT "
+                           "topic_id, timestamp, data FROM messages WHERE id <= 6')"
+                           ".fetchall())")
     wal = rec.with_name("w.db3-wal")
     assert wal.stat().st_size > 0
     os.truncate(rec, len(whole) * 6 // 10)
@@ -651,25 +659,19 @@ def test_sqlite_recover_leaves_deleted_rows_deleted(tmp_path):
     # last commit ends the database before pages that still hold the deleted rows.
     rec = tmp_path / "wal" / "w.db3"
     rec.parent.mkdir()
-    script = ("import os, sqlite3, sys\n"
-              "c = sqlite3.connect(sys.argv[1])\n"
-              "c.execute('PRAGMA auto_vacuum=FULL')\n"
-              "c.execute('CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, "
-              "type TEXT NOT NULL, serialization_format TEXT NOT NULL, "
-              "offered_qos_profiles TEXT NOT NULL)')\n"
-              "c.execute('CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER "
-              "NOT NULL, timestamp INTEGER NOT NULL, data BLOB NOT NULL)')\n"
-              "c.execute(\"INSERT INTO topics VALUES (1, '/t', 'std_msgs/msg/String', "
-              "'cdr', '')\")\n"
-              "c.executemany('INSERT INTO messages VALUES (?, 1, ?, ?)', "
-              "[(i, i, os.urandom(100)) for i in range(1, 3001)])\n"
-              "c.commit(); c.execute('PRAGMA journal_mode=WAL')\n"
-              "c.execute('PRAGMA wal_autocheckpoint=0')\n"
-              "c.execute('DELETE FROM messages WHERE id > 1000'); c.commit()\n"
-              "os._exit(0)\n")
-    import subprocess
-    import sys
-    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    setup = ("c.execute('PRAGMA auto_vacuum=FULL')\n"
+             "c.execute('CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, "
+             "type TEXT NOT NULL, serialization_format TEXT NOT NULL, "
+             "offered_qos_profiles TEXT NOT NULL)')\n"
+             "c.execute('CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER "
+             "NOT NULL, timestamp INTEGER NOT NULL, data BLOB NOT NULL)')\n"
+             "c.execute(\"INSERT INTO topics VALUES (1, '/t', 'std_msgs/msg/String', "
+             "'cdr', '')\")\n"
+             "c.executemany('INSERT INTO messages VALUES (?, 1, ?, ?)', "
+             "[(i, i, os.urandom(100)) for i in range(1, 3001)])\n"
+             "c.commit()\n")
+    _commit_to_log_and_die(rec, "c.execute('DELETE FROM messages WHERE id > 1000')",
+                           setup=setup)
     kept = recover_sqlite(rec, tmp_path / "walfixed.db3")
     assert (kept["messages"], kept["last_id"]) == (1000, 1000)
 
@@ -678,18 +680,12 @@ def test_sqlite_recover_applies_a_log_holding_page_one_to_a_cut_file(tmp_path):
     """A log frame of page 1 (any committed change writes it) must not bring back the
     page count of the whole file into a cut copy: the rows on the pages that are there
     come back, as without the log."""
-    import subprocess
-    import sys
 
     path, whole = _small_messages_db(tmp_path, range(1, 3001))
     rec = tmp_path / "wal" / "w.db3"
     rec.parent.mkdir()
     rec.write_bytes(whole)
-    script = ("import os, sqlite3, sys\n"
-              "c = sqlite3.connect(sys.argv[1])\n"
-              "c.execute('PRAGMA journal_mode=WAL'); c.execute('PRAGMA wal_autocheckpoint=0')\n"
-              "c.execute('PRAGMA user_version=7'); c.commit(); os._exit(0)\n")
-    subprocess.run([sys.executable, "-c", script, str(rec)], check=True)
+    _commit_to_log_and_die(rec, "c.execute('PRAGMA user_version=7')")
     os.truncate(rec, len(whole) // 2)
     cut = tmp_path / "cut.db3"
     cut.write_bytes(whole[: len(whole) // 2])

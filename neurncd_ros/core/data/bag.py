@@ -386,6 +386,23 @@ def _storage_files(folder: Path) -> list[str]:
     return sorted(p.name for p in folder.iterdir() if p.suffix in (".mcap", ".db3"))
 
 
+def recording_file(src: Path, out: Path, suffix: str) -> Path:
+    """The storage file (``suffix``) a recovery reads: ``src``, or the one file of that
+    kind in the bag folder ``src``. Refuses a missing file, and an ``out`` that is the
+    recording itself (or a hard link to it): a recovery writes a new file."""
+    if src.is_dir():
+        files = [f for f in _storage_files(src) if f.endswith(suffix)]
+        if len(files) != 1:
+            raise BagError(f"{_where(src)}: recover needs one {suffix} file, the folder "
+                           f"holds {len(files)}")
+        src = src / files[0]
+    if not src.is_file():
+        raise BagError(f"{src}: no such file")
+    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
+        raise BagError(f"{out}: the recovered copy must not replace the recording")
+    return src
+
+
 def _where(path: Path) -> str:
     """The bag path, with its storage files when it is a folder (to name the bad file)."""
     files = _storage_files(path) if path.is_dir() else []

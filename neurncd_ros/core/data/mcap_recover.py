@@ -14,26 +14,9 @@ import zlib
 from pathlib import Path
 from typing import Any
 
-from .bag import BagError, _storage_files, _where
+from .bag import BagError, recording_file
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-def recording_file(src: Path, out: Path, suffix: str) -> Path:
-    """The storage file (``suffix``) a recovery reads: ``src``, or the one file of that
-    kind in the bag folder ``src``. Refuses a missing file, and an ``out`` that is the
-    recording itself (or a hard link to it): a recovery writes a new file."""
-    if src.is_dir():
-        files = [f for f in _storage_files(src) if f.endswith(suffix)]
-        if len(files) != 1:
-            raise BagError(f"{_where(src)}: recover needs one {suffix} file, the folder "
-                           f"holds {len(files)}")
-        src = src / files[0]
-    if not src.is_file():
-        raise BagError(f"{src}: no such file")
-    if out.resolve() == src.resolve() or (out.exists() and out.samefile(src)):
-        raise BagError(f"{out}: the recovered copy must not replace the recording")
-    return src
 
 
 def recover_mcap(src: str | Path, out: str | Path) -> dict[str, int]:

@@ -21,8 +21,7 @@ import struct
 import tempfile
 from pathlib import Path
 
-from .bag import BagError, _storage_files
-from .mcap_recover import recording_file
+from .bag import BagError, _storage_files, recording_file
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # The small tables copied whole; ``metadata`` (rosbag2's summary of the whole recording,
@@ -51,7 +50,7 @@ def is_sqlite(src: str | Path) -> bool:
 
 def _source(src: Path, out: Path) -> Path:
     """The .db3 file of ``src`` (the file, or a bag folder holding one), checked to be
-    SQLite and not to be ``out`` (:func:`.mcap_recover.recording_file`)."""
+    SQLite and not to be ``out`` (:func:`.bag.recording_file`)."""
     src = recording_file(src, out, ".db3")
     with src.open("rb") as f:
         if f.read(16) != _SQLITE_MAGIC:
@@ -89,13 +88,14 @@ def _intact(src: Path) -> bool:
         con.close()
 
 
-def _stage_copy(src: Path, stage: Path) -> tuple[Path, int]:
+def _stage_copy(src: Path, stage: Path) -> tuple[Path, int, int, int]:
     """Copy the file's whole pages into ``stage``, with the committed frames of a -wal
     beside it written in (:func:`_apply_wal`; the copy then ends where the log's last
     commit says the database does) and a -journal beside it copied (SQLite rolls it back
     when the copy opens), and the header's page count set to the pages there: SQLite
     refuses a file shorter than its header says even where the pages a query needs are
-    all there. Returns the copy and its pages."""
+    all there. Returns the copy, its page size, the usable bytes of a page (less the
+    reserved bytes the header names) and its pages."""
     with src.open("rb") as f:
         header = f.read(100)
         if len(header) < 100:
@@ -125,7 +125,7 @@ def _stage_copy(src: Path, stage: Path) -> tuple[Path, int]:
         pages = out.seek(0, os.SEEK_END) // page
         out.seek(28)  # after the log, whose page 1 may say otherwise
         out.write(struct.pack(">I", pages))
-    return copy, pages
+    return copy, page, page - header[20], pages
 
 
 def _wal_checksum(data: bytes, s0: int, s1: int, big: bool) -> tuple[int, int]:
@@ -378,12 +378,8 @@ def recover_sqlite(src: str | Path, out: str | Path) -> dict[str, int]:
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-        copy, counts["pages"] = _stage_copy(src, stage)
+        copy, page, usable, counts["pages"] = _stage_copy(src, stage)
         master, small = _read_tables(copy, src)
-        with copy.open("rb") as f:
-            header = f.read(100)
-        page = _page_size(src, header)
-        usable = page - header[20]
         _write(stage / out.name, master, small, _message_rows(copy, page, usable, counts),
                counts, src)
         os.replace(stage / out.name, out)
