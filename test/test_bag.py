@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sqlite3
 from pathlib import Path
 from typing import Any
 
@@ -494,6 +495,52 @@ def test_a_cut_off_sqlite_recording_is_recovered_up_to_its_cut(tmp_path, capsys)
     out = capsys.readouterr().out
     assert f"recovered {kept['messages']} messages on 6 topics" in out
     assert f"messages 1-{kept['messages']}, none missing between them" in out
+
+
+def test_a_recovered_sqlite_copy_opens_as_rosbag2_opens_it(tmp_path):
+    """`ros2 bag info` / `play` on the copy: rosbag2's SQLite plugin (Jazzy,
+    sqlite_storage.cpp) reads the schema version, then, from version 3 on, selects from
+    the `metadata` table before it counts the messages itself, and the open fails when
+    the table is missing. The copy keeps the table, empty (its rows would count the
+    recording's messages, not the copy's), and every query rosbag2 runs on opening and
+    reading gives the copy's messages, in time order."""
+    frames, f, whole = _sqlite_recording(tmp_path)
+    with sqlite3.connect(f) as con:  # the recording itself closed with a metadata row
+        assert con.execute("SELECT count(*) FROM metadata").fetchone() == (1,)
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(whole[: len(whole) * 6 // 10])
+    kept = recover_sqlite(cut, tmp_path / "fixed.db3")
+    con = sqlite3.connect(f"file:{tmp_path / 'fixed.db3'}?mode=ro", uri=True)
+    try:
+        (version,), = con.execute("SELECT schema_version FROM schema").fetchall()
+        assert version >= 3
+        assert con.execute("SELECT metadata_version, metadata FROM metadata ORDER BY id"
+                           ).fetchall() == []
+        topics = con.execute("SELECT id, name, type, serialization_format, "
+                             "offered_qos_profiles, type_description_hash FROM topics "
+                             "ORDER BY id").fetchall()
+        assert len(topics) == 6
+        counted = con.execute(
+            "SELECT messages.topic_id, name, type, serialization_format, "
+            "COUNT(messages.id), MIN(messages.timestamp), MAX(messages.timestamp), "
+            "offered_qos_profiles, type_description_hash FROM messages JOIN topics on "
+            "topics.id = messages.topic_id GROUP BY topics.name").fetchall()
+        assert sum(row[4] for row in counted) == kept["messages"]
+        assert con.execute("SELECT topic_type, encoding, encoded_message_definition, "
+                           "type_description_hash FROM message_definitions ORDER BY id"
+                           ).fetchall()
+        assert con.execute("SELECT ros_distro from schema").fetchall()
+        read = con.execute("SELECT data, timestamp, topics.name, messages.id FROM messages "
+                           "JOIN topics ON messages.topic_id = topics.id WHERE "
+                           "(((timestamp = 0) AND (messages.id >= 0)) OR (timestamp > 0)) "
+                           "ORDER BY messages.timestamp ASC, messages.id ASC").fetchall()
+        assert len(read) == kept["messages"]
+        assert [r[1] for r in read] == sorted(r[1] for r in read)
+        indexes = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE "
+                                             "type = 'index'")}
+        assert "timestamp_idx" in indexes  # rosbag2 reads in time order through it
+    finally:
+        con.close()
 
 
 def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):

@@ -5,8 +5,9 @@ and SQLite (rosbags with it) then refuses the whole file as malformed; a recorde
 mid-write (rosbag2's default preset writes with ``synchronous=OFF``) can leave pages torn
 in the middle. :func:`recover_sqlite` reads what is left into a new ``.db3`` file that
 rosbags and ``neurncd`` read on its own (no ``metadata.yaml`` needed): the tables
-rosbag2 writes (``schema``, ``topics``, ``message_definitions``, ``messages``) with their
-own ``CREATE`` statements, the small ones through SQLite, and the messages by reading
+rosbag2 writes (``schema``, ``topics``, ``message_definitions``, ``messages``, and
+``metadata`` kept empty) with their own ``CREATE`` statements, the small ones copied
+through SQLite, and the messages by reading
 every page of the file for message rows (:func:`_message_rows`), as sqlite3's
 ``.recover`` does: a lost or torn page costs the rows on it, not the rows the B-tree
 reaches through it. The SQLite file format: https://www.sqlite.org/fileformat2.html.
@@ -24,9 +25,12 @@ from pathlib import Path
 from .bag import BagError, _storage_files, recording_file
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
-# The small tables copied whole; ``metadata`` (rosbag2's summary of the whole recording,
-# written when it closes) is left out: it would count messages the copy no longer has.
+# The small tables copied whole. ``metadata`` (rosbag2's summary of the whole recording,
+# written when it closes) is made but left empty: its rows would count messages the copy
+# no longer has, and rosbag2 (schema 3 on) queries the table when it opens a file, then
+# counts the messages itself when the table holds no row.
 _TABLES = ("schema", "topics", "message_definitions")
+_EMPTY_TABLES = ("metadata",)
 _BATCH_BYTES = 32 << 20  # message rows held at most before they are written
 _TABLE_LEAF = 0x0D
 
@@ -348,7 +352,8 @@ def recover_sqlite(src: str | Path, out: str | Path) -> dict[str, int]:
     that was written; a ``-journal`` beside it is copied too (SQLite rolls it back), and
     the committed frames of a ``-wal`` are written into the copy (:func:`_apply_wal`).
     The bag's tables are made anew from their own ``CREATE`` statements; ``schema``,
-    ``topics`` and ``message_definitions`` are copied whole through SQLite, and the
+    ``topics`` and ``message_definitions`` are copied whole through SQLite, ``metadata``
+    is left empty (rosbag2 then counts the copy's messages itself), and the
     messages are read off every table-leaf page of the copy (:func:`_message_rows`), so
     a lost or torn page costs only its own rows. Messages of a topic no longer listed
     are dropped. The staging copy needs as much free space as the recording, next to
@@ -403,9 +408,10 @@ def _write(fresh: Path, master: list, small: dict[str, list], messages, counts: 
     """The new database: the small tables' rows, every message row of a listed topic
     (one of each id), the indexes after the rows (faster), and the counts filled in."""
     sql = {name: text for kind, name, _, text in master if kind == "table" and text}
+    empty = [name for name in _EMPTY_TABLES if name in sql]
     new = sqlite3.connect(fresh)
     try:
-        for name in (*small, "messages"):
+        for name in (*small, *empty, "messages"):
             new.execute(sql[name])
         for name, rows in small.items():
             if rows:
@@ -431,7 +437,7 @@ def _write(fresh: Path, master: list, small: dict[str, list], messages, counts: 
             raise BagError(f"{src}: no message could be read: nothing to recover")
         counts.update(messages=n, first_id=first, last_id=last,
                       missing=last - first + 1 - n)
-        kept = {*small, "messages"}
+        kept = {*small, *empty, "messages"}
         for kind, _, table, text in master:
             if kind == "index" and text and table in kept:
                 new.execute(text)
