@@ -766,6 +766,11 @@ def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
     (tmp_path / "folder.db3").mkdir()
     with pytest.raises(BagError, match="is a folder"):
         recover_sqlite(cut, tmp_path / "folder.db3")
+    (tmp_path / "empty").mkdir()  # a folder holding neither kind of recording
+    for recover, out in ((recover_sqlite, "x.db3"), (recover_mcap, "x.mcap")):
+        with pytest.raises(BagError, match=r"no recording in it \(no \.mcap or \.db3"):
+            recover(tmp_path / "empty", tmp_path / out)
+    (tmp_path / "empty").rmdir()
     assert not (tmp_path / "x.db3").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging
     # A path with URI characters in it is a path, not a URI (# is no fragment).

@@ -391,6 +391,9 @@ def recording_file(src: Path, out: Path, suffix: str) -> Path:
     kind in the bag folder ``src``. Refuses a missing file, and an ``out`` that is the
     recording itself (or a hard link to it): a recovery writes a new file."""
     if src.is_dir():
+        if not _storage_files(src):
+            raise BagError(f"{src}: a folder with no recording in it (no .mcap or .db3 "
+                           "file)")
         files = [f for f in _storage_files(src) if f.endswith(suffix)]
         if len(files) != 1:
             raise BagError(f"{_where(src)}: recover needs one {suffix} file, the folder "
