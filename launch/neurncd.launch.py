@@ -15,9 +15,12 @@ Arguments (``NAME:=VALUE`` after the file name):
 Before a node starts it points Fast DDS at the shipped shared-memory profile
 (``FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE``, and ``RMW_IMPLEMENTATION``) unless the user
 set them, with the nodes' own helper: default Fast DDS loses images over 1 MB. A
-parameter file or bag that does not exist stops the launch before any node starts (a
-parameter file launch_ros cannot find is only a warning, and the nodes would run on
-their defaults).
+parameter file or bag that does not exist, or a parameter file with a value the nodes
+would refuse (``neurncd check-config``), stops the launch before any node starts, with
+one error (a parameter file launch_ros cannot find is only a warning, and each node would
+refuse a bad value on its own, the others running on). As with bringup, a node or replay
+that fails (a crash: an exit code other than 0) stops the others, and ``ros2 launch``
+exits 1.
 
 The same start as ``bringup`` without its supervision, which is why bringup is the tested
 way: here the replay starts with the nodes (it waits for subscribers on the input topics
@@ -26,6 +29,8 @@ their upstream node), and the nodes keep running after the bag until Ctrl-C.
 """
 
 import os
+import subprocess
+import sys
 
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
@@ -52,10 +57,39 @@ def before_the_nodes(context, *args, **kwargs):
     bag = LaunchConfiguration("bag").perform(context)
     if bag and not os.path.exists(bag):
         raise RuntimeError(f"neurncd.launch.py: bag {bag} does not exist")
+    check = subprocess.run([*neurncd_command(), "check-config", params_file],
+                           capture_output=True, text=True, start_new_session=True)
+    if check.returncode != 0:
+        lines = (check.stderr or check.stdout).strip().splitlines() or [
+            f"neurncd check-config exited {check.returncode}"]
+        raise RuntimeError("neurncd.launch.py: " + "\n".join(
+            line.removeprefix("neurncd check-config: ") for line in lines))
     env = dict(context.environment)
     ensure_dds_profile(env)
     return [SetEnvironmentVariable(name, value) for name, value in env.items()
             if context.environment.get(name) != value]
+
+
+def neurncd_command() -> list[str]:
+    """The offline tool as ``ros2 run neurncd_ros neurncd`` starts it (its interpreter is
+    the one with the package's dependencies, which ros2 launch's may lack), else this
+    interpreter's (the source tree)."""
+    prefix = os.path.dirname(os.path.dirname(get_package_share_directory(PACKAGE)))
+    exe = os.path.join(prefix, "lib", PACKAGE, "neurncd")
+    return [exe] if os.access(exe, os.X_OK) else [sys.executable, "-m", "neurncd_ros.cli"]
+
+
+def after_a_process(event, context):
+    """A node or the replay that fails while the launch is not shutting down (a crash, a
+    value it refused: an exit code other than 0) stops the launch with an error (ros2
+    launch exits 1), as bringup stops the others. A node exits 0 only when asked to stop (SIGINT,
+    SIGTERM), the replay at the end of its bag: Ctrl-C in a terminal reaches every node at
+    once, and a node may end before launch has seen the signal; stopping the launch then
+    would signal the nodes a second time, which ends them at once, without their save."""
+    if context.is_shutdown or event.returncode == 0:
+        return None
+    raise RuntimeError(f"neurncd.launch.py: {event.process_name} exited with code "
+                       f"{event.returncode}: stopping the others")
 
 
 def generate_launch_description():
@@ -73,7 +107,7 @@ def generate_launch_description():
     def node(executable, *parameters, condition=None):
         return Node(package=PACKAGE, executable=executable, namespace=namespace,
                     parameters=[params_file, sim_time, *parameters], output="screen",
-                    condition=condition)
+                    condition=condition, on_exit=after_a_process)
 
     return LaunchDescription([
         DeclareLaunchArgument(

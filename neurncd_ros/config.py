@@ -36,6 +36,7 @@ from typing import Any
 import yaml
 
 from .core.params import ConfigError, ParamSpec, build, param, specs, to_dict
+from .share import share_file
 
 
 # ------------------------------------------------------- node / tool sections
@@ -93,7 +94,12 @@ SECTIONS: dict[str, tuple[str, str]] = {
     "semnerf": ("neurncd_ros.core.eval.semnerf", "SemanticNerfConfig"),
 }
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "config" / "neurncd.yaml"
+
+
+def default_config() -> Path:
+    """The shipped parameter file: share/neurncd_ros/config/neurncd.yaml of a colcon
+    install, else the source tree's config/neurncd.yaml (the nodes' default too)."""
+    return share_file("config", "neurncd.yaml")
 
 
 def _top_class(name: str) -> type:
@@ -466,7 +472,7 @@ def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None
     names its source: the file when the file alone is invalid, else the first override
     that makes it so (a bad ``--set`` value is not blamed on the file).
     """
-    path = Path(path) if path else DEFAULT_CONFIG
+    path = Path(path) if path else default_config()
     nested = parameters_from_yaml(read_config_text(path), str(path))
     for key in overrides or {}:
         if "." not in key:

@@ -68,6 +68,14 @@ def stand_in_modules() -> dict[str, types.ModuleType]:
     class LaunchContext:
         def __init__(self, *, argv=None, noninteractive=False):
             self.launch_configurations: dict[str, str] = {}
+            self.__is_shutdown = False
+
+        def _set_is_shutdown(self, state: bool) -> None:
+            self.__is_shutdown = state
+
+        @property
+        def is_shutdown(self):
+            return self.__is_shutdown
 
         @property
         def environment(self):
@@ -452,3 +460,45 @@ def test_a_missing_params_file_or_bag_stops_before_any_node(launched, tmp_path):
     bag = tmp_path / "scene.mcap"
     bag.write_bytes(b"")
     launched.before_the_nodes(launched.context(bag=str(bag)))  # an existing one is fine
+
+
+def test_a_params_file_the_nodes_would_refuse_stops_before_any_node(launched, tmp_path):
+    """Each node would refuse the value on its own (one error per node, the launch exiting
+    0); the launch file checks the file as `neurncd check-config` does, before any node,
+    and names every bad value once."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("/**:\n  ros__parameters:\n    embedding_node:\n      max_rate_hz: -3.0\n"
+                   "    mapper:\n      lambda_embedding: -1.0\n")
+    with pytest.raises(RuntimeError) as info:
+        launched.before_the_nodes(launched.context(params_file=str(bad)))
+    text = str(info.value)
+    assert text.startswith("neurncd.launch.py: ")
+    assert "embedding_node.max_rate_hz: -3.0 is out of range" in text
+    assert "mapper.lambda_embedding: -1.0 is out of range" in text
+    assert "Traceback" not in text
+
+
+def test_a_node_that_fails_stops_the_launch(launched):
+    """A node or replay that fails while the launch runs (a crash, a refused value: an exit
+    code other than 0) stops the launch with an error, so ros2 launch exits 1 and no node
+    runs on without the others, as under bringup. An exit 0 is a requested stop (Ctrl-C
+    in a terminal reaches the nodes before launch may have seen it; stopping the launch
+    would signal them again) or the replay at its bag's end: no error, nor any end during
+    the launch's own shutdown."""
+    ctx = launched.context(bag="scene.mcap")
+    started = launched.started(ctx)
+    assert len(started) == 4
+
+    class Exited:  # what launch's ProcessExited carries that the handler reads
+        def __init__(self, name, returncode):
+            self.process_name, self.returncode = name, returncode
+
+    for node in started:
+        on_exit = node.recorded["on_exit"]
+        assert on_exit(Exited("x-1", 0), ctx) is None
+        for code in (1, 2, -9, -11):
+            with pytest.raises(RuntimeError, match=rf"x-1 exited with code {code}: stopping"):
+                on_exit(Exited("x-1", code), ctx)
+    ctx._set_is_shutdown(True)
+    for node in started:
+        assert node.recorded["on_exit"](Exited("x-1", -15), ctx) is None

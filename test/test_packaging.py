@@ -93,6 +93,13 @@ def test_colcon_build_installs_nodes_that_answer_help(tmp_path):
                            timeout=120, cwd=tmp_path)
         assert r.returncode == 0, f"{node} --help failed:\n{r.stdout}\n{r.stderr}"
         assert re.search(rf"usage: {node}\b", r.stdout), r.stdout
+    # The offline tool reads the installed share/ parameter file by default: the package's
+    # folder in site-packages has no config/ beside it (ros2 run neurncd_ros neurncd ...).
+    cmd = f"source {ws}/install/setup.bash && {lib / 'neurncd'} params"
+    r = subprocess.run(["bash", "-c", cmd], env=env, capture_output=True, text=True,
+                       timeout=120, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert re.search(r"^      field_views: false$", r.stdout, re.M), r.stdout
     # The installed copy is the one that runs, not the source tree.
     r = subprocess.run(["bash", "-c", f"source {ws}/install/setup.bash && {sys.executable} -c "
                         "'import neurncd_ros; print(neurncd_ros.__file__)'"],

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Callable
 # here (numpy, the config schema, rclpy) would widen the window in which a signal is lost
 # or ends the start in a traceback. Heavier modules are imported where they are used.
 from ..core.params import ConfigError
+from ..share import share_file
 from .parameters import (empty_lists, parameter_origin, params_file_error, params_files,
                          ros_args_error)
 from .process import Shutdown
@@ -28,20 +29,7 @@ from .process import Shutdown
 if TYPE_CHECKING:
     import numpy as np
 
-PACKAGE = "neurncd_ros"
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
-
-
-def share_file(*parts: str) -> Path:
-    """A file of the package's share/ (colcon install) or of the source tree."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        path = Path(get_package_share_directory(PACKAGE)).joinpath(*parts)
-        if path.exists():
-            return path
-    except Exception:  # not installed with colcon: fall back to the source tree
-        pass
-    return Path(__file__).resolve().parents[2].joinpath(*parts)
 
 
 def ensure_dds_profile(env: dict[str, str] | None = None) -> str:
