@@ -15,10 +15,11 @@ Arguments (``NAME:=VALUE`` after the file name):
 Before a node starts it points Fast DDS at the shipped shared-memory profile
 (``FASTRTPS_/FASTDDS_DEFAULT_PROFILES_FILE``, and ``RMW_IMPLEMENTATION``) unless the user
 set them, with the nodes' own helper: default Fast DDS loses images over 1 MB. A
-parameter file or bag that does not exist, or a parameter file with a value the nodes
-would refuse (``neurncd check-config``), stops the launch before any node starts, with
-one error (a parameter file launch_ros cannot find is only a warning, and each node would
-refuse a bad value on its own, the others running on). As with bringup, a node or replay
+parameter file or bag that does not exist, or a parameter file with a value a node
+would refuse (``neurncd check-config --node``, each node's view of the file), stops the
+launch before any node starts, with one error (a parameter file launch_ros cannot find
+is only a warning, and each node would refuse a bad value on its own, the others running
+on). As with bringup, a node or replay
 that fails (a crash: an exit code other than 0) stops the others, and ``ros2 launch``
 exits 1.
 
@@ -57,7 +58,13 @@ def before_the_nodes(context, *args, **kwargs):
     bag = LaunchConfiguration("bag").perform(context)
     if bag and not os.path.exists(bag):
         raise RuntimeError(f"neurncd.launch.py: bag {bag} does not exist")
-    check = subprocess.run([*neurncd_command(), "check-config", params_file],
+    # Each node's own view of the file, as rcl gives it (/** and the node's own entries):
+    # another node's entry in a shared file is not this launch's concern.
+    namespace = LaunchConfiguration("namespace").perform(context).strip("/")
+    names = [*NODES, "replay"] if bag else list(NODES)
+    views = [f"--node=/{namespace}/{name}" if namespace else f"--node=/{name}"
+             for name in names]
+    check = subprocess.run([*neurncd_command(), "check-config", params_file, *views],
                            capture_output=True, text=True, start_new_session=True)
     if check.returncode != 0:
         lines = (check.stderr or check.stdout).strip().splitlines() or [

@@ -60,22 +60,35 @@ def cmd_params(args: argparse.Namespace) -> int:
 
 
 def cmd_check_config(args: argparse.Namespace) -> int:
-    found = config_mod.problems(args.file)
-    if len(found) > 1:  # every one, so that one run shows what to fix
-        for text in found:
-            print(f"neurncd check-config: configuration error: {text}", file=sys.stderr)
-        print(f"{args.file}: {len(found)} errors", file=sys.stderr)
-        return 2
-    cfg = config_mod.load(args.file)  # one error (or one that ties parameters): as named
     from .core.backbone.backbone import setup_problems
 
-    found = [f"{args.file}: backbone: {text}" for text in setup_problems(cfg.backbone)]
-    for text in found:  # what the embedding node and `run` would refuse at start
-        print(f"neurncd check-config: configuration error: {text}", file=sys.stderr)
+    views = [n if n.startswith("/") else "/" + n for n in args.node or []] or [None]
+    # None: every node entry merged, the offline tool's view
+    found: dict[str, list[str]] = {}  # error -> the nodes given the value
+    for node in views:
+        listed = config_mod.problems(args.file, node)
+        if len(listed) <= 1:  # one error (or one tying sections): as load names it
+            try:
+                cfg = config_mod.load(args.file, node=node)
+                listed = []
+                if node is None or node.rsplit("/", 1)[-1] == "embedding":
+                    # what the embedding node (and `run`) would refuse at start
+                    listed = [f"{args.file}: backbone: {text}"
+                              for text in setup_problems(cfg.backbone)]
+            except ConfigError as err:
+                listed = [str(err)]
+        for text in listed:  # every one, so that one run shows what to fix
+            found.setdefault(text, []).extend([node] if node else [])
+    for text, nodes in found.items():
+        named = f" (node {', '.join(nodes)})" if nodes else ""
+        print(f"neurncd check-config: configuration error: {text}{named}", file=sys.stderr)
+    if len(found) > 1:
+        print(f"{args.file}: {len(found)} errors", file=sys.stderr)
     if found:
         return 2
     n = len(cfg.to_flat())
-    print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections)")
+    print(f"{args.file}: valid ({n} parameters in {len(cfg.sections)} sections"
+          + (f"; for {', '.join(views)}" if args.node else "") + ")")
     return 0
 
 
@@ -369,6 +382,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("check-config", help="validate a parameter file")
     p.add_argument("file")
+    p.add_argument("--node", action="append", metavar="FQN",
+                   help="check what the node of this fully qualified name (/mapper, "
+                        "/robot1/embedding) is given, as rcl gives it /** and its own "
+                        "entries; repeat for several nodes (default: every entry merged, "
+                        "as neurncd run reads the file)")
     p.set_defaults(func=cmd_check_config)
 
     p = sub.add_parser("synth", help="generate a synthetic RGB-D scene with ground truth")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import re
 from pathlib import Path
 from typing import Any
 
@@ -336,8 +337,20 @@ def ros_builtin(name: str) -> bool:
     return name in ROS_BUILTIN_PARAMETERS or name.split(".")[0] == "qos_overrides"
 
 
-def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
-    """The ``ros__parameters`` mapping of a ROS 2 parameter file (``/**`` or any node).
+def node_entry_applies(entry: str, node: str) -> bool:
+    """Whether a parameter file's node entry (``/**``, ``mapper``, ``/robot1/*``, ...)
+    gives its parameters to the node of fully qualified name ``node``, as rclpy matches
+    them: a leading ``/`` added, each ``/*`` one name token, ``/**`` any number of them."""
+    name = entry if entry.startswith("/") else "/" + entry
+    return re.fullmatch(name.replace("/*", r"(/\w+)"), node) is not None
+
+
+def parameters_from_yaml(text: str, source: str = "<yaml>", node: str | None = None
+                         ) -> dict[str, Any]:
+    """The ``ros__parameters`` mapping of a ROS 2 parameter file: every node entry's
+    (``/**`` and any node's) merged in file order, the offline tool's view; with ``node``
+    (a fully qualified name, ``/mapper``) only the entries rclpy gives that node
+    (:func:`node_entry_applies`), the view the node itself starts with.
 
     A key given twice in one mapping is a ConfigError naming it (YAML would keep the
     last value silently). rclpy's own parameters (:func:`ros_builtin`: ``use_sim_time``
@@ -362,6 +375,8 @@ def parameters_from_yaml(text: str, source: str = "<yaml>") -> dict[str, Any]:
         params = body["ros__parameters"] or {}
         if not isinstance(params, dict):
             raise ConfigError(f"{source}: {node_name}.ros__parameters must be a mapping")
+        if node is not None and not node_entry_applies(str(node_name), node):
+            continue  # another node's: rcl gives it to that node only
         own = {k: v for k, v in params.items() if not ros_builtin(str(k))}
         merged = _merge(merged, _undotted(own, f"{source}: {node_name}.ros__parameters"))
     return merged
@@ -436,14 +451,17 @@ def read_config_text(path: Path) -> str:
                           ) from None
 
 
-def problems(path: str | Path) -> list[str]:
+def problems(path: str | Path, node: str | None = None) -> list[str]:
     """Every error of a parameter file, not only the first that :func:`load` stops at
-    (``neurncd check-config``): each top-level section, then each parameter, checked on
-    its own against the defaults; a file YAML or the ROS form refuses is its one error.
-    Checks that tie two parameters together are :func:`load`'s (run it as well)."""
+    (``neurncd check-config``; ``node``: the view of that node, as in
+    :func:`parameters_from_yaml`): each top-level section, then each parameter, checked on
+    its own against the defaults; a value refused alone but not beside the rest of its
+    section in the file (a check tying two parameters, both given) is no error. A file
+    YAML or the ROS form refuses is its one error. Checks across sections are
+    :func:`load`'s (run it as well)."""
     path = Path(path)
     try:
-        nested = parameters_from_yaml(read_config_text(path), str(path))
+        nested = parameters_from_yaml(read_config_text(path), str(path), node)
     except ConfigError as err:
         return [str(err)]
     if not isinstance(nested, dict):
@@ -456,24 +474,33 @@ def problems(path: str | Path) -> list[str]:
             out.append(f"{path}: {err}")
             continue
         for sec, values in by_section.items():
+            refused = {}
             for key, value in values.items():
                 try:
                     _build({sec: {key: value}})
                 except ConfigError as err:
+                    refused[key] = err
+            for key, err in refused.items():
+                beside = {k: v for k, v in values.items() if k not in refused or k == key}
+                try:
+                    _build({sec: beside})
+                except ConfigError:
                     out.append(f"{path}: {err}")
     return out
 
 
-def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+def load(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+         node: str | None = None) -> Config:
     """Read and validate a parameter file (default: the shipped config/neurncd.yaml), in
-    ROS 2 form: the sections under ``/**:`` then ``ros__parameters:`` (module doc).
+    ROS 2 form: the sections under ``/**:`` then ``ros__parameters:`` (module doc); every
+    node entry merged, or with ``node`` that node's view (:func:`parameters_from_yaml`).
 
     ``overrides`` are dotted names applied on top (as from the command line). An error
     names its source: the file when the file alone is invalid, else the first override
     that makes it so (a bad ``--set`` value is not blamed on the file).
     """
     path = Path(path) if path else default_config()
-    nested = parameters_from_yaml(read_config_text(path), str(path))
+    nested = parameters_from_yaml(read_config_text(path), str(path), node)
     for key in overrides or {}:
         if "." not in key:
             raise ConfigError(f"{key}: override must be <section>.<name>")

@@ -15,12 +15,25 @@ PACKAGE = "neurncd_ros"
 
 
 def share_file(*parts: str) -> Path:
-    """A file of the package's share/ (colcon install) or of the source tree."""
+    """A file of the running package's own tree: the source tree beside it (a checkout,
+    an editable install: edits apply), else its own install prefix's share/neurncd_ros
+    (``<prefix>/lib/pythonX.Y/site-packages/neurncd_ros``: colcon, pip), else the ament
+    index's; the source tree's path when none holds it. The package's own copy first, so
+    that code and its files never come from two installs (a stale workspace on
+    AMENT_PREFIX_PATH)."""
+    here = Path(__file__).resolve()
+    source = here.parents[1].joinpath(*parts)
+    if source.exists():
+        return source
+    if len(here.parents) > 4:
+        own = here.parents[4].joinpath("share", PACKAGE, *parts)
+        if own.exists():
+            return own
     try:
         from ament_index_python.packages import get_package_share_directory
         path = Path(get_package_share_directory(PACKAGE)).joinpath(*parts)
         if path.exists():
             return path
-    except Exception:  # not installed with colcon: fall back to the source tree
+    except Exception:  # not on the ament index
         pass
-    return Path(__file__).resolve().parents[1].joinpath(*parts)
+    return source

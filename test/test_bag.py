@@ -500,10 +500,10 @@ def test_a_cut_off_sqlite_recording_is_recovered_up_to_its_cut(tmp_path, capsys)
 def test_a_recovered_sqlite_copy_opens_as_rosbag2_opens_it(tmp_path):
     """`ros2 bag info` / `play` on the copy: rosbag2's SQLite plugin (Jazzy,
     sqlite_storage.cpp) reads the schema version, then, from version 3 on, selects from
-    the `metadata` table before it counts the messages itself, and the open fails when
-    the table is missing. The copy keeps the table, empty (its rows would count the
-    recording's messages, not the copy's), and every query rosbag2 runs on opening and
-    reading gives the copy's messages, in time order."""
+    the `metadata` table, and the open fails when the table is missing. The copy keeps
+    the table, empty (a row would name the recording's files, which rosbag2 then opens
+    without a metadata.yaml), and every query rosbag2 runs on opening and reading gives
+    the copy's messages, in time order."""
     frames, f, whole = _sqlite_recording(tmp_path)
     with sqlite3.connect(f) as con:  # the recording itself closed with a metadata row
         assert con.execute("SELECT count(*) FROM metadata").fetchone() == (1,)
@@ -541,6 +541,26 @@ def test_a_recovered_sqlite_copy_opens_as_rosbag2_opens_it(tmp_path):
         assert "timestamp_idx" in indexes  # rosbag2 reads in time order through it
     finally:
         con.close()
+
+
+def test_a_recovered_copy_keeps_a_definitions_table_whose_rows_are_lost(tmp_path):
+    """A torn page under message_definitions: its rows are gone, but rosbags and rosbag2
+    query the table on every schema-4 file; the copy holds it empty and reads."""
+    frames, f, whole = _sqlite_recording(tmp_path)
+    with sqlite3.connect(f) as con:
+        (root,), = con.execute("SELECT rootpage FROM sqlite_master WHERE "
+                               "name = 'message_definitions'").fetchall()
+        (size,), = con.execute("PRAGMA page_size").fetchall()
+    torn = bytearray(whole[: len(whole) * 6 // 10])
+    torn[(root - 1) * size: root * size] = b"\xff" * size
+    cut = tmp_path / "cut.db3"
+    cut.write_bytes(bytes(torn))
+    kept = recover_sqlite(cut, tmp_path / "fixed.db3")
+    with sqlite3.connect(tmp_path / "fixed.db3") as con:
+        assert con.execute("SELECT count(*) FROM message_definitions").fetchone() == (0,)
+    got = list(FrameReader(tmp_path / "fixed.db3"))
+    assert len(got) >= 5 and kept["messages"] > 0
+    assert_same(frames[: len(got)], got, gt=False)
 
 
 def test_sqlite_recover_skips_a_damaged_range_and_keeps_what_follows(tmp_path):
@@ -770,7 +790,10 @@ def test_sqlite_recover_refuses_what_it_cannot_or_need_not_recover(tmp_path):
     for recover, out in ((recover_sqlite, "x.db3"), (recover_mcap, "x.mcap")):
         with pytest.raises(BagError, match=r"no recording in it \(no \.mcap or \.db3"):
             recover(tmp_path / "empty", tmp_path / out)
-    (tmp_path / "empty").rmdir()
+    (tmp_path / "empty" / "rosbag2_0.db3.zstd").write_bytes(b"(\xb5/\xfd")
+    with pytest.raises(BagError, match=r"is compressed \(rosbag2_0\.db3\.zstd\).*zstd -d"):
+        recover_sqlite(tmp_path / "empty", tmp_path / "x.db3")
+    shutil.rmtree(tmp_path / "empty")
     assert not (tmp_path / "x.db3").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging
     # A path with URI characters in it is a path, not a URI (# is no fragment).

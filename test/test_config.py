@@ -127,6 +127,66 @@ def test_rclpys_own_parameters_in_a_shared_file_are_left_to_ros(tmp_path):
         config.load(path)
 
 
+def test_a_nodes_view_of_a_shared_file_is_what_rcl_gives_it(tmp_path):
+    """A file shared with other nodes, or with entries per robot: each node is given /**
+    and the entries that name it, in file order (rclpy's matching: '/*' one name token,
+    '/**' any), so another node's keys are not this node's errors; the offline tool's
+    view (no node) merges every entry."""
+    path = tmp_path / "shared.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    mapper:\n      lambda_embedding: 0.5\n"
+                    "camera_driver:\n  ros__parameters:\n    fps: 30\n"
+                    "/robot1/*:\n  ros__parameters:\n    mapper:\n      lambda_embedding: 2.0\n"
+                    "/robot2/mapper:\n  ros__parameters:\n    mapper:\n"
+                    "      lambda_embedding: -1.0\n")
+    with pytest.raises(ConfigError, match="fps: unknown section"):
+        config.load(path)
+    assert config.load(path, node="/mapper").mapper.lambda_embedding == 0.5
+    assert config.load(path, node="/robot1/mapper").mapper.lambda_embedding == 2.0
+    with pytest.raises(ConfigError, match="lambda_embedding: -1.0 is out of range"):
+        config.load(path, node="/robot2/mapper")
+    assert config.problems(path, node="/robot1/discovery") == []
+    assert len(config.problems(path)) == 2  # fps and the -1.0
+    for entry, node, applies in (("/**", "/a/b/mapper", True), ("mapper", "/mapper", True),
+                                 ("mapper", "/robot1/mapper", False),
+                                 ("/*", "/robot1/mapper", False),
+                                 ("/**/mapper", "/mapper", True),
+                                 ("/robot1/*", "/robot1/mapper", True)):
+        assert config.node_entry_applies(entry, node) is applies, (entry, node)
+
+
+def test_the_default_file_is_the_running_packages_own(tmp_path, monkeypatch):
+    """Another install of the package on AMENT_PREFIX_PATH (a stale workspace) does not
+    lend the running code its parameter file: the source tree's comes first here, and an
+    installed package reads its own prefix's share/ (test_packaging)."""
+    share = tmp_path / "prefix" / "share" / "neurncd_ros"
+    (share / "config").mkdir(parents=True)
+    (share / "config" / "neurncd.yaml").write_text(
+        "/**:\n  ros__parameters:\n    mapper:\n      old_param_removed: 1\n")
+    (tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "packages").mkdir(
+        parents=True)
+    (tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "packages" /
+     "neurncd_ros").write_text("")
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "prefix"))
+    assert config.default_config() == REPO / "config" / "neurncd.yaml"
+    config.load()
+
+
+def test_problems_are_not_values_the_rest_of_the_file_makes_consistent(tmp_path):
+    """A check that ties two parameters (min below max) judged each value against the
+    other's default: a file raising both was listed as two errors that load() accepts."""
+    path = tmp_path / "room.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    synth:\n      room_height_min: 4.0\n"
+                    "      room_height_max: 5.0\n      room_size_min: 10.0\n"
+                    "      room_size_max: 15.0\n")
+    assert config.load(path).synth.room_height_min == 4.0
+    assert config.problems(path) == []
+    path.write_text("/**:\n  ros__parameters:\n    synth:\n      room_height_min: 4.0\n"
+                    "      room_height_max: 3.5\n      room_size_min: -1.0\n")
+    found = config.problems(path)
+    assert any("room_height_min" in f for f in found), found  # still refused, with -1.0
+    assert any("room_size_min: -1.0" in f for f in found), found
+
+
 def test_overrides_and_flat_names():
     cfg = config.load(SHIPPED, {"mapper.backend": "reference", "mapper_node.max_in_flight": 3})
     assert cfg.mapper.backend == "reference" and cfg.mapper_node.max_in_flight == 3

@@ -431,7 +431,11 @@ def test_the_replay_only_with_a_bag_and_its_clock_with_sim_time(launched, bag, s
 
 
 def test_the_fast_dds_profile_unless_the_user_chose_one(launched, monkeypatch):
-    profile = str(launched.share / "config" / "fastdds_shm.xml")  # the installed one
+    from neurncd_ros.share import share_file
+
+    # the running package's own (in an install, its share/: test_packaging)
+    profile = str(share_file("config", "fastdds_shm.xml"))
+    assert os.path.isfile(profile)
 
     def set_by_launch() -> dict[str, str]:
         ctx = launched.context()
@@ -476,6 +480,19 @@ def test_a_params_file_the_nodes_would_refuse_stops_before_any_node(launched, tm
     assert "embedding_node.max_rate_hz: -3.0 is out of range" in text
     assert "mapper.lambda_embedding: -1.0 is out of range" in text
     assert "Traceback" not in text
+    # What each node is given, as rcl gives it: another node's or robot's entry in a
+    # shared file is not this launch's error; its own robot's is.
+    shared = tmp_path / "shared.yaml"
+    shared.write_text("/**:\n  ros__parameters:\n    mapper:\n      lambda_embedding: 0.5\n"
+                      "camera_driver:\n  ros__parameters:\n    fps: 30\n"
+                      "/robot2/*:\n  ros__parameters:\n    embedding_node:\n"
+                      "      max_rate_hz: -3.0\n")
+    launched.before_the_nodes(launched.context(params_file=str(shared), namespace="robot1"))
+    with pytest.raises(RuntimeError, match=r"max_rate_hz: -3.0 is out of range.*\(node "
+                                           r"/robot2/embedding, /robot2/mapper, "
+                                           r"/robot2/discovery\)"):
+        launched.before_the_nodes(launched.context(params_file=str(shared),
+                                                   namespace="robot2"))
 
 
 def test_a_node_that_fails_stops_the_launch(launched):

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 import rosutil
+from neurncd_ros.core.params import ConfigError
 from rosutil import REPO, apply_ros_env, node_processes, ros_env, spin_until
 
 pytestmark = pytest.mark.ros
@@ -252,6 +253,27 @@ def test_bringup_refuses_a_bad_value_once_before_starting_nodes(ros_args, expect
     origin = "given in params file" if "--params-file" in ros_args else "given with -p"
     assert origin in lines[0] or "unknown" in lines[0] or "backbone" in lines[0], lines[0]
     assert not node_processes(domain)
+
+
+def test_bringup_checks_what_each_of_its_nodes_is_given(tmp_path):
+    """A parameter file shared with other nodes (a camera driver's entry) or holding one
+    entry per robot: bringup refused it for keys none of its nodes is given. It now checks
+    each node's own view (/** and the entries naming it, in its namespace)."""
+    from neurncd_ros.nodes.parameters import started_configuration
+
+    shared = tmp_path / "shared.yaml"
+    shared.write_text("/**:\n  ros__parameters:\n    mapper:\n      lambda_embedding: 0.5\n"
+                      "camera_driver:\n  ros__parameters:\n    fps: 30\n"
+                      "/robot2/*:\n  ros__parameters:\n    embedding_node:\n"
+                      "      max_rate_hz: -3.0\n")
+    nodes = ("embedding", "mapper", "discovery")
+    cfg = started_configuration(shared, ["-r", "__ns:=/robot1"], nodes)
+    assert cfg.mapper.lambda_embedding == 0.5
+    with pytest.raises(ConfigError, match=r"max_rate_hz: -3.0 is out of range.*"
+                                          r"\(node /robot2/embedding\)"):
+        started_configuration(shared, ["-r", "__ns:=/robot2"], nodes)
+    with pytest.raises(ConfigError, match="fps: unknown section"):
+        started_configuration(shared, [])  # no nodes named: every entry, as before
 
 
 def test_replay_stopped_mid_bag_says_so_and_where(small_bag):

@@ -565,3 +565,21 @@ def test_check_config_names_every_error_of_a_file(tmp_path):
     r = neurncd("check-config", esanet, timeout=120)
     assert r.returncode == 2 and "ESANet checkpoint" in r.stderr and "does not exist" \
         in r.stderr, r.stderr
+    # A file shared with another node and with another robot's entry: --node checks what
+    # each named node is given (the backbone's setup for the embedding node alone).
+    shared = tmp_path / "shared.yaml"
+    shared.write_text("/**:\n  ros__parameters:\n    discovery:\n      entropy_threshold: 0.4\n"
+                      "camera_driver:\n  ros__parameters:\n    fps: 30\n"
+                      "/robot2/mapper:\n  ros__parameters:\n    mapper:\n"
+                      "      lambda_embedding: -1.0\n"
+                      "/robot1/mapper:\n  ros__parameters:\n    backbone:\n"
+                      "      kind: esanet\n")
+    views = ["--node", "/robot1/embedding", "--node", "/robot1/mapper"]
+    r = neurncd("check-config", shared, *views, timeout=120)
+    assert r.returncode == 0 and "for /robot1/embedding, /robot1/mapper" in r.stdout, \
+        r.stdout + r.stderr
+    r = neurncd("check-config", shared, "--node", "robot2/mapper", timeout=120)
+    assert r.returncode == 2 and "lambda_embedding: -1.0 is out of range" in r.stderr \
+        and "(node /robot2/mapper)" in r.stderr and "fps" not in r.stderr, r.stderr
+    r = neurncd("check-config", shared, timeout=120)  # every entry: neurncd run's view
+    assert r.returncode == 2 and "fps: unknown section" in r.stderr, r.stderr

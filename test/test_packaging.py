@@ -100,8 +100,13 @@ def test_colcon_build_installs_nodes_that_answer_help(tmp_path):
                        timeout=120, cwd=tmp_path)
     assert r.returncode == 0, r.stdout + r.stderr
     assert re.search(r"^      field_views: false$", r.stdout, re.M), r.stdout
-    # The installed copy is the one that runs, not the source tree.
+    # The installed copy is the one that runs, not the source tree, and its files (the
+    # DDS profile, the parameter file) are its own prefix's.
     r = subprocess.run(["bash", "-c", f"source {ws}/install/setup.bash && {sys.executable} -c "
-                        "'import neurncd_ros; print(neurncd_ros.__file__)'"],
+                        "'import neurncd_ros; print(neurncd_ros.__file__); "
+                        "from neurncd_ros.share import share_file; "
+                        "print(share_file(\"config\", \"fastdds_shm.xml\"))'"],
                        env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
-    assert str(ws / "install") in r.stdout, r.stdout + r.stderr
+    lines = r.stdout.splitlines()
+    assert len(lines) == 2 and str(ws / "install") in lines[0], r.stdout + r.stderr
+    assert lines[1] == str(share / "config" / "fastdds_shm.xml"), r.stdout

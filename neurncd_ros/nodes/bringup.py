@@ -208,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         if problem:
             raise ConfigError(problem)
         # What each node would refuse, refused once here, before any starts.
-        topic = started_configuration(args.params_file, ros_args).topics.diagnostics
+        nodes = (*NODES, "replay") if args.bag else NODES
+        topic = started_configuration(args.params_file, ros_args, nodes).topics.diagnostics
     except ConfigError as err:
         print(f"bringup: configuration error: {err}", file=sys.stderr)
         return 2

@@ -161,44 +161,66 @@ def given_with_p(ros_args: list[str]) -> dict[str, str]:
     return out
 
 
-def started_configuration(params_file: str | Path, ros_args: list[str]) -> config_mod.Config:
+def node_namespace(ros_args: list[str]) -> str:
+    """The namespace ``-r __ns:=/robot1`` (``--remap``) among ROS arguments gives the nodes,
+    '' for none; the last one wins, as in rcl."""
+    out = ""
+    for i, arg in enumerate(ros_args[:-1]):
+        if arg in ("-r", "--remap") and ros_args[i + 1].startswith("__ns:="):
+            out = ros_args[i + 1].split(":=", 1)[1].strip().strip("/")
+    return out
+
+
+def started_configuration(params_file: str | Path, ros_args: list[str],
+                          nodes: tuple[str, ...] | list[str] = ()) -> config_mod.Config:
     """The configuration nodes started with ``--params-file params_file`` and ``ros_args``
     read: the file, then the further ``--params-file`` files among ``ros_args`` and their
     ``-p`` values (YAML, as rcl reads them) on top, in that order, validated as a node
     validates it, and the backbone's setup as the embedding node checks it at start
-    (``setup_problems``: an ESANet without its checkpoint). Bringup checks it before
+    (``setup_problems``: an ESANet without its checkpoint). With ``nodes`` (names, placed in
+    the namespace of ``ros_args``), each node's own view of the files is checked, as rcl
+    gives it /** and its own entries (another node's entry in a shared file is not
+    refused), and the first node's configuration is returned. Bringup checks it before
     starting any node, so a bad value is one error naming where it was given, not one per
     node (or one node's death after the others have started)."""
     from .. import config as config_mod
 
-    overrides: dict[str, Any] = {}
-    for path in params_files(ros_args):
-        overrides.update((k, v) for k, v in _file_parameters(path).items()
-                         if not isinstance(v, dict))
-    for key, text in given_with_p(ros_args).items():
-        overrides[key] = config_mod.read_yaml(text, f"-p {key}:={text}")
-    overrides = {k: v for k, v in overrides.items() if not config_mod.ros_builtin(k)}
-    try:
-        cfg = config_mod.load(params_file, overrides)
-    except ConfigError as err:
-        key = str(err).removeprefix("override ").split("=", 1)[0].split(":", 1)[0]
-        raise ConfigError(f"{err}{parameter_origin(key + ':', ros_args)}") from None
-    from ..core.backbone.backbone import setup_problems
+    namespace = node_namespace(ros_args)
+    views = [f"/{namespace}/{n}" if namespace else f"/{n}" for n in nodes] or [None]
+    configs = []
+    for view in views:
+        overrides: dict[str, Any] = {}
+        for path in params_files(ros_args):
+            overrides.update((k, v) for k, v in _file_parameters(path, view).items()
+                             if not isinstance(v, dict))
+        for key, text in given_with_p(ros_args).items():
+            overrides[key] = config_mod.read_yaml(text, f"-p {key}:={text}")
+        overrides = {k: v for k, v in overrides.items() if not config_mod.ros_builtin(k)}
+        named = f" (node {view})" if view else ""
+        try:
+            cfg = config_mod.load(params_file, overrides, node=view)
+        except ConfigError as err:
+            key = str(err).removeprefix("override ").split("=", 1)[0].split(":", 1)[0]
+            raise ConfigError(f"{err}{named}{parameter_origin(key + ':', ros_args)}"
+                              ) from None
+        if view is None or view.rsplit("/", 1)[-1] == "embedding":
+            from ..core.backbone.backbone import setup_problems
 
-    problems = setup_problems(cfg.backbone)  # the embedding node's refusal at start
-    if problems:
-        raise ConfigError(f"backbone: {problems[0]}")
-    return cfg
+            problems = setup_problems(cfg.backbone)  # the embedding node's refusal at start
+            if problems:
+                raise ConfigError(f"backbone: {problems[0]}{named}")
+        configs.append(cfg)
+    return configs[0]
 
 
-def _file_parameters(path: str) -> dict[str, Any]:
-    """Every parameter a params file gives, by dotted name, sections included (``mapper``
-    and ``mapper.lr``), with its value; {} for a file the configuration cannot read (that
-    is reported on its own, :func:`params_file_error`)."""
+def _file_parameters(path: str, node: str | None = None) -> dict[str, Any]:
+    """Every parameter a params file gives (``node``: gives that node), by dotted name,
+    sections included (``mapper`` and ``mapper.lr``), with its value; {} for a file the
+    configuration cannot read (that is reported on its own, :func:`params_file_error`)."""
     from ..config import parameters_from_yaml, read_config_text
 
     try:
-        nested = parameters_from_yaml(read_config_text(Path(path)), path)
+        nested = parameters_from_yaml(read_config_text(Path(path)), path, node)
     except ConfigError:
         return {}
     out: dict[str, Any] = {}

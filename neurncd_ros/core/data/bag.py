@@ -392,6 +392,11 @@ def recording_file(src: Path, out: Path, suffix: str) -> Path:
     recording itself (or a hard link to it): a recovery writes a new file."""
     if src.is_dir():
         if not _storage_files(src):
+            packed = sorted(p.name for p in src.glob("*.zstd"))
+            if packed:  # rosbag2's file compression (ros2 bag record --compression-mode file)
+                raise BagError(f"{src}: its recording is compressed ({', '.join(packed)}): "
+                               f"recover reads the storage file itself; decompress it "
+                               f"first (zstd -d {src / packed[0]})")
             raise BagError(f"{src}: a folder with no recording in it (no .mcap or .db3 "
                            "file)")
         files = [f for f in _storage_files(src) if f.endswith(suffix)]

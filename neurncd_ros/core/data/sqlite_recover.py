@@ -26,9 +26,10 @@ from .bag import BagError, _storage_files, recording_file
 
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 # The small tables copied whole. ``metadata`` (rosbag2's summary of the whole recording,
-# written when it closes) is made but left empty: its rows would count messages the copy
-# no longer has, and rosbag2 (schema 3 on) queries the table when it opens a file, then
-# counts the messages itself when the table holds no row.
+# written when it closes) is made but left empty: rosbag2 (schema 3 on) queries the table
+# when it opens a file, and takes the files of the bag from its row (the recording's
+# names, several for a split bag) when there is no metadata.yaml; with no row it takes
+# the copy's own path (it counts the messages, start and duration itself either way).
 _TABLES = ("schema", "topics", "message_definitions")
 _EMPTY_TABLES = ("metadata",)
 _BATCH_BYTES = 32 << 20  # message rows held at most before they are written
@@ -337,7 +338,7 @@ def _read_tables(copy: Path, src: Path) -> tuple[list, dict[str, list]]:
                 if name == "topics":
                     raise BagError(f"{src}: its topics cannot be read ({err}): nothing to "
                                    "recover") from None
-                # schema / definitions: rosbags reads a bag without them
+                # schema / definitions: left out, made empty (_write)
         return master, rows
     finally:
         con.close()
@@ -352,8 +353,9 @@ def recover_sqlite(src: str | Path, out: str | Path) -> dict[str, int]:
     that was written; a ``-journal`` beside it is copied too (SQLite rolls it back), and
     the committed frames of a ``-wal`` are written into the copy (:func:`_apply_wal`).
     The bag's tables are made anew from their own ``CREATE`` statements; ``schema``,
-    ``topics`` and ``message_definitions`` are copied whole through SQLite, ``metadata``
-    is left empty (rosbag2 then counts the copy's messages itself), and the
+    ``topics`` and ``message_definitions`` are copied whole through SQLite (the
+    definitions made empty when their rows are lost), ``metadata`` is left empty
+    (rosbag2 then names the copy's own file, not the recording's), and the
     messages are read off every table-leaf page of the copy (:func:`_message_rows`), so
     a lost or torn page costs only its own rows. Messages of a topic no longer listed
     are dropped. The staging copy needs as much free space as the recording, next to
@@ -408,7 +410,11 @@ def _write(fresh: Path, master: list, small: dict[str, list], messages, counts: 
     """The new database: the small tables' rows, every message row of a listed topic
     (one of each id), the indexes after the rows (faster), and the counts filled in."""
     sql = {name: text for kind, name, _, text in master if kind == "table" and text}
-    empty = [name for name in _EMPTY_TABLES if name in sql]
+    # message_definitions made empty when its rows are lost: rosbags and rosbag2 query it
+    # on every schema-4 file (an unreadable schema table stays out: both readers then take
+    # the file for an old one, where an empty one would break rosbag2)
+    empty = [name for name in (*_EMPTY_TABLES, "message_definitions")
+             if name in sql and name not in small]
     new = sqlite3.connect(fresh)
     try:
         for name in (*small, *empty, "messages"):
