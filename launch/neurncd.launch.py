@@ -23,10 +23,11 @@ on). As with bringup, a node or replay
 that fails (a crash: an exit code other than 0) stops the others, and ``ros2 launch``
 exits 1.
 
-The same start as ``bringup`` without its supervision, which is why bringup is the tested
-way: here the replay starts with the nodes (it waits for subscribers on the input topics
-itself, ``replay.wait_for_subscribers_s``, but not for the mapper and discovery to see
-their upstream node), and the nodes keep running after the bag until Ctrl-C.
+The same start as ``bringup``: here the replay starts with the nodes, and waits itself
+(``replay.wait_for_graph``, at most ``replay.wait_for_subscribers_s``) until the nodes
+report on /diagnostics that they are up and see their upstream node, as bringup waits
+before it starts the replay; the nodes keep running after the bag until Ctrl-C (bringup
+stops them once they have labelled it).
 """
 
 import os
@@ -42,10 +43,9 @@ from launch.substitutions import (AndSubstitution, LaunchConfiguration, NotEqual
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
-from neurncd_ros.nodes.common import ensure_dds_profile
+from neurncd_ros.nodes.common import PIPELINE_NODES as NODES, ensure_dds_profile
 
 PACKAGE = "neurncd_ros"
-NODES = ("embedding", "mapper", "discovery")
 
 
 def before_the_nodes(context, *args, **kwargs):
@@ -108,7 +108,10 @@ def generate_launch_description():
     # Typed: the values stay a bool and a string whatever they look like to YAML (a bag
     # called 2024 or on), as bringup's -p values do for rcl.
     sim_time = {"use_sim_time": ParameterValue(use_sim_time, value_type=bool)}
-    replay_bag = {"replay.bag": ParameterValue(bag, value_type=str)}
+    # The replay starts with the nodes: it waits for the graph downstream too (the mapper
+    # and discovery listening), or the first frames reach only the embedding node.
+    replay_bag = {"replay.bag": ParameterValue(bag, value_type=str),
+                  "replay.wait_for_graph": True}
     has_bag = NotEqualsSubstitution(bag, "")
 
     def node(executable, *parameters, condition=None):

@@ -61,6 +61,13 @@ class ReplayConfig:
                                           "holds (colour, depth, camera info, pose) has a "
                                           "subscriber; then play anyway, with a warning (0 = "
                                           "do not wait)", lo=0.0, hi=3600.0, unit="s")
+    wait_for_graph: bool = param(False, "also wait (within wait_for_subscribers_s) until the "
+                                 "embedding, mapper and discovery nodes report on "
+                                 "topics.diagnostics that they are up and see their upstream "
+                                 "node (and, with clock, until /clock has a subscriber), so "
+                                 "that a replay started with the nodes (the launch file sets "
+                                 "it) does not play the first frames before the mapper "
+                                 "listens; bringup waits for them itself")
     clock: bool = param(False, "publish rosgraph_msgs/Clock on /clock at the bag's time as it "
                         "plays (ros2 bag play --clock), for nodes run with use_sim_time "
                         "(bringup sets it when given -p use_sim_time:=true)")

@@ -156,6 +156,61 @@ def test_replay_waits_until_every_subscriber_has_matched(ros_node, small_bag, tm
     assert second == stamps and first == stamps
 
 
+def test_replay_waits_for_the_graph_downstream_when_asked(ros_node, small_bag, tmp_path):
+    """Under ros2 launch the replay starts with the nodes: with replay.wait_for_graph it
+    plays only once the embedding, mapper and discovery nodes report on /diagnostics that
+    they are up and see their upstream node (as bringup waits for them), or the mapper
+    lost the bag's first embeddings (20 or 17 of 27 frames paired, against 27). Here a
+    stand-in reports them; without the reports it plays after wait_for_subscribers_s,
+    saying what it waited for."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo, Image
+
+    node, domain = ros_node
+    for t, kind in (("/camera/depth/image_raw", Image), ("/camera/color/image_raw", Image),
+                    ("/camera/pose", PoseStamped), ("/camera/color/camera_info", CameraInfo)):
+        node.create_subscription(kind, t, lambda m: None, 20)
+    # No node reports: it plays after the wait, naming them.
+    log = tmp_path / "alone.log"
+    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
+                  "replay.wait_for_subscribers_s:=3.0"], ros_env(domain), log)
+    try:
+        assert proc.wait(timeout=120) == 0, log.read_text()
+    finally:
+        stop(proc)
+    text = log.read_text()
+    assert "the mapper node up and connected" in text and "playing anyway" in text, text
+    # The nodes report, connected: it plays without waiting out its limit.
+    pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+    def report() -> None:
+        msg = DiagnosticArray()
+        for name, upstream in (("embedding", None), ("mapper", "1"), ("discovery", "1")):
+            values = [KeyValue(key="pending", value="0")]
+            values += [KeyValue(key="upstream_publishers", value=upstream)] if upstream else []
+            msg.status.append(DiagnosticStatus(name=f"neurncd_ros: {name}", values=values))
+        pub.publish(msg)
+
+    timer = node.create_timer(0.2, report)
+    second: list = []  # a subscription of its own: the first replay's frames never reach it
+    node.create_subscription(Image, "/camera/depth/image_raw", second.append, 20)
+    log = tmp_path / "graph.log"
+    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
+                  "replay.wait_for_subscribers_s:=600.0"], ros_env(domain), log)
+    try:
+        assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
+        assert proc.returncode == 0, log.read_text()
+        assert spin_until(node, lambda: len(second) == 15, 30), (len(second),
+                                                                   log.read_text())
+    finally:
+        node.destroy_timer(timer)
+        stop(proc)
+    assert "playing anyway" not in log.read_text()
+
+
 def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, tmp_path):
     """A bag recorded through image_transport has .../compressed where the contract's
     colour topic would be: the replay plays it and says which topic to give the nodes."""

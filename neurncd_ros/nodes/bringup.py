@@ -42,11 +42,11 @@ import threading
 import time
 
 from .common import (ConfigError, dds_profile_warning, diagnostics_status, ensure_dds_profile,
-                     share_file)
+                     PIPELINE_NODES, node_connected, share_file)
 from .parameters import empty_lists, given_with_p, params_file_error, started_configuration
 from .process import STOP_SIGNALS, Shutdown, exit_status, remove_stale_shm
 
-NODES = ("embedding", "mapper", "discovery")
+NODES = PIPELINE_NODES
 PR_SET_PDEATHSIG = 1
 
 
@@ -128,9 +128,7 @@ class DrainWatcher:
             if values is not None:
                 with self._lock:
                     self._latest[name] = (now, int(values.get("pending", "1") or 1))
-                    # A node that reports its upstream publishers is connected once it
-                    # sees one (the mapper the embedding node, discovery the mapper).
-                    self._connected[name] = int(values.get("upstream_publishers", "1") or 0) > 0
+                    self._connected[name] = bool(node_connected(msg, name))
 
     def ready(self) -> bool:
         """Every node has reported (it is up, its subscriptions made) and sees its upstream

@@ -30,6 +30,9 @@ if TYPE_CHECKING:
     import numpy as np
 
 PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+PIPELINE_NODES = ("embedding", "mapper", "discovery")
+"""The nodes of the graph, upstream first: what bringup and the launch file start, and
+what the replay waits for (``replay.wait_for_graph``)."""
 
 
 def ensure_dds_profile(env: dict[str, str] | None = None) -> str:
@@ -429,3 +432,14 @@ def diagnostics_status(msg: Any, name: str) -> dict[str, str] | None:
         if st.name == f"neurncd_ros: {name}":
             return {kv.key: kv.value for kv in st.values}
     return None
+
+
+def node_connected(msg: Any, name: str) -> bool | None:
+    """What a DiagnosticArray says of node ``name``: None if it did not report in it, else
+    whether it sees its upstream node's publisher (``upstream_publishers``: the mapper the
+    embedding node's, discovery the mapper's; a node without it, once it reports). Before
+    that, what is published to it is lost to DDS discovery (bringup and the replay wait)."""
+    values = diagnostics_status(msg, name)
+    if values is None:
+        return None
+    return int(values.get("upstream_publishers", "1") or 0) > 0

@@ -18,7 +18,7 @@ import importlib
 import threading
 import time
 
-from .common import latched_qos, output_qos, run_node
+from .common import PIPELINE_NODES, latched_qos, node_connected, output_qos, run_node
 from .parameters import ReadOnlyConfig, declare_config
 
 DESCRIPTION = ("Publishes every message of a bag (mcap or sqlite3) on its recorded topic and "
@@ -80,6 +80,13 @@ def make_node():
                               if topic in self.publishers_by_topic)
             self.wait_topics = [x for x in (t.color, t.depth, t.camera_info, t.pose)
                                 if x in self.publishers_by_topic]
+            # the graph downstream of the inputs (wait_for_graph): the nodes up and each
+            # connected to its upstream node, as they report it on /diagnostics (bringup's
+            # rule: the graph's own topic lists do not say the DDS endpoints have matched)
+            self.connected: dict[str, bool] = {}
+            if self.cfg.wait_for_graph:
+                from diagnostic_msgs.msg import DiagnosticArray
+                self.create_subscription(DiagnosticArray, t.diagnostics, self._on_diag, 50)
             images = sorted(x for x, (mt, _) in topics.items()
                             if mt.startswith("sensor_msgs/msg/") and "Image" in mt)
             for role, want in (("color", t.color), ("depth", t.depth),
@@ -120,6 +127,15 @@ def make_node():
                 now = tuple(self.publishers_by_topic[x].get_subscription_count()
                             for x in self.wait_topics)
                 missing = [x for x, n in zip(self.wait_topics, now) if n == 0]
+                if self.cfg.wait_for_graph:
+                    apart = [n for n in PIPELINE_NODES if not self.connected.get(n)]
+                    missing += [f"the {n} node up and connected (/diagnostics; "
+                                "replay.wait_for_graph)" for n in apart]
+                    if self.pub_clock is not None:
+                        # nodes on sim time: a frame before their /clock matched is lost
+                        clocks = self.pub_clock.get_subscription_count()
+                        missing += [] if clocks else ["/clock (replay.wait_for_graph)"]
+                        now += (clocks,)
                 if missing and not said:  # a wait of up to a minute is not silent
                     said = True
                     self.get_logger().info(f"waiting (at most {limit:g} s, "
@@ -135,6 +151,12 @@ def make_node():
             if not self._stop.is_set() and missing:
                 self.get_logger().warning(f"no subscriber on {', '.join(missing)} after "
                                           f"{limit:g} s: playing anyway")
+
+        def _on_diag(self, msg) -> None:
+            for name in PIPELINE_NODES:
+                state = node_connected(msg, name)
+                if state is not None:
+                    self.connected[name] = state
 
         def _play_once(self) -> None:
             t0_wall = t0_bag = None
