@@ -293,8 +293,10 @@ def test_replay_stopped_mid_bag_says_so_and_where(small_bag):
     node = rclpy.create_node("replay_watcher")
     seen: list = []
     node.create_subscription(Image, "/camera/depth/image_raw", seen.append, sensor_qos(5))
+    # It plays at once (it would wait 30 s for subscribers on the inputs not watched here).
     proc = _start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                   f"replay.bag:={small_bag}", "-p", "replay.rate:=0.05"], ros_env(domain))
+                   f"replay.bag:={small_bag}", "-p", "replay.rate:=0.05", "-p",
+                   "replay.wait_for_subscribers_s:=0.0"], ros_env(domain))
     try:
         assert spin_until(node, lambda: bool(seen) or proc.poll() is not None, 60)
         proc.send_signal(signal.SIGTERM)

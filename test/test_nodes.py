@@ -253,7 +253,8 @@ def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, 
     ("embedding", "SIGINT", []),
     ("mapper", "SIGTERM", []),
     ("discovery", "SIGINT", []),
-    ("replay", "SIGTERM", ["replay.loop:=true"]),
+    # it plays at once (it would wait 30 s for subscribers on the inputs not watched here)
+    ("replay", "SIGTERM", ["replay.loop:=true", "replay.wait_for_subscribers_s:=0.0"]),
 ])
 def test_nodes_stop_cleanly_on_signals_even_with_sigint_ignored(node_name, sig, extra,
                                                                 tmp_path, small_bag):
