@@ -418,6 +418,8 @@ def test_the_replay_only_with_a_bag_and_its_clock_with_sim_time(launched, bag, s
     files, values = node_parameters(replays[0], ctx)
     assert values["replay.bag"] == bag and isinstance(values["replay.bag"], str)
     assert values.get("replay.clock") is clock
+    # It starts with the nodes: it waits until they report that they are up and connected.
+    assert values["replay.wait_for_graph"] is True
     # The node takes them: launch_ros writes them into a params file of its own (/** as the
     # nodes get no name), read here as the nodes and bringup read their configuration.
     from neurncd_ros.nodes.parameters import params_file_error, started_configuration
@@ -427,7 +429,7 @@ def test_the_replay_only_with_a_bag_and_its_clock_with_sim_time(launched, bag, s
     assert params_file_error(str(extra)) is None
     cfg = started_configuration(files[0], ["--params-file", str(extra)])
     assert cfg.replay.bag == bag
-    assert cfg.replay.clock is (clock is True)
+    assert cfg.replay.clock is (clock is True) and cfg.replay.wait_for_graph is True
 
 
 def test_the_fast_dds_profile_unless_the_user_chose_one(launched, monkeypatch):

@@ -158,11 +158,13 @@ def test_replay_waits_until_every_subscriber_has_matched(ros_node, small_bag, tm
 
 def test_replay_waits_for_the_graph_downstream_when_asked(ros_node, small_bag, tmp_path):
     """Under ros2 launch the replay starts with the nodes: with replay.wait_for_graph it
-    plays only once the embedding, mapper and discovery nodes report on /diagnostics that
-    they are up and see their upstream node (as bringup waits for them), or the mapper
-    lost the bag's first embeddings (20 or 17 of 27 frames paired, against 27). Here a
-    stand-in reports them; without the reports it plays after wait_for_subscribers_s,
-    saying what it waited for."""
+    plays only once the embedding, mapper and discovery nodes of its own namespace report
+    on /diagnostics that they are up and see their upstream node (as bringup waits for
+    them), or the mapper lost the bag's first embeddings (17-20 of 27 frames paired,
+    against 27). Stand-ins report here: a mapper that does not see its upstream yet and a
+    discovery node of another robot keep it waiting (it plays after
+    wait_for_subscribers_s, naming them and not the embedding node); all three connected
+    let it play without waiting out its limit."""
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     from geometry_msgs.msg import PoseStamped
     from sensor_msgs.msg import CameraInfo, Image
@@ -171,44 +173,53 @@ def test_replay_waits_for_the_graph_downstream_when_asked(ros_node, small_bag, t
     for t, kind in (("/camera/depth/image_raw", Image), ("/camera/color/image_raw", Image),
                     ("/camera/pose", PoseStamped), ("/camera/color/camera_info", CameraInfo)):
         node.create_subscription(kind, t, lambda m: None, 20)
-    # No node reports: it plays after the wait, naming them.
-    log = tmp_path / "alone.log"
-    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
-                  "replay.wait_for_subscribers_s:=3.0"], ros_env(domain), log)
-    try:
-        assert proc.wait(timeout=120) == 0, log.read_text()
-    finally:
-        stop(proc)
-    text = log.read_text()
-    assert "the mapper node up and connected" in text and "playing anyway" in text, text
-    # The nodes report, connected: it plays without waiting out its limit.
     pub = node.create_publisher(DiagnosticArray, "/diagnostics", 10)
+    reports: dict = {}  # name -> (fully qualified name, upstream_publishers or None)
 
     def report() -> None:
         msg = DiagnosticArray()
-        for name, upstream in (("embedding", None), ("mapper", "1"), ("discovery", "1")):
+        for name, (fqn, upstream) in reports.items():
             values = [KeyValue(key="pending", value="0")]
             values += [KeyValue(key="upstream_publishers", value=upstream)] if upstream else []
-            msg.status.append(DiagnosticStatus(name=f"neurncd_ros: {name}", values=values))
+            msg.status.append(DiagnosticStatus(name=f"neurncd_ros: {name}", hardware_id=fqn,
+                                               values=values))
         pub.publish(msg)
 
     timer = node.create_timer(0.2, report)
-    second: list = []  # a subscription of its own: the first replay's frames never reach it
-    node.create_subscription(Image, "/camera/depth/image_raw", second.append, 20)
-    log = tmp_path / "graph.log"
-    proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                  f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
-                  "replay.wait_for_subscribers_s:=600.0"], ros_env(domain), log)
     try:
-        assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
-        assert proc.returncode == 0, log.read_text()
-        assert spin_until(node, lambda: len(second) == 15, 30), (len(second),
-                                                                   log.read_text())
+        reports.update(embedding=("/embedding", None), mapper=("/mapper", "0"),
+                       discovery=("/robot2/discovery", "1"))
+        log = tmp_path / "waiting.log"
+        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                      f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
+                      "replay.wait_for_subscribers_s:=4.0"], ros_env(domain), log)
+        try:
+            assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
+            assert proc.returncode == 0, log.read_text()
+        finally:
+            stop(proc)
+        warning = [line for line in log.read_text().splitlines() if "playing anyway" in line]
+        assert len(warning) == 1, log.read_text()
+        assert "the mapper node" in warning[0] and "the discovery node" in warning[0], warning
+        assert "the embedding node" not in warning[0], warning
+        # All three connected, in the replay's namespace: it plays at once.
+        reports.update(mapper=("/mapper", "1"), discovery=("/discovery", "1"))
+        second: list = []  # a subscription of its own: the first replay's frames never reach it
+        node.create_subscription(Image, "/camera/depth/image_raw", second.append, 20)
+        log = tmp_path / "graph.log"
+        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                      f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
+                      "replay.wait_for_subscribers_s:=600.0"], ros_env(domain), log)
+        try:
+            assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
+            assert proc.returncode == 0, log.read_text()
+            assert spin_until(node, lambda: len(second) == 15, 30), (len(second),
+                                                                       log.read_text())
+        finally:
+            stop(proc)
+        assert "playing anyway" not in log.read_text()
     finally:
         node.destroy_timer(timer)
-        stop(proc)
-    assert "playing anyway" not in log.read_text()
 
 
 def test_replay_names_the_compressed_topic_of_a_bag_to_set(ros_node, small_bag, tmp_path):

@@ -123,12 +123,13 @@ class DrainWatcher:
 
     def _on_diag(self, msg) -> None:
         now = time.monotonic()
+        namespace = self.node.get_namespace()  # the nodes' (bringup takes their -r __ns)
         for name in NODES:
-            values = diagnostics_status(msg, name)
+            values = diagnostics_status(msg, name, namespace)
             if values is not None:
                 with self._lock:
                     self._latest[name] = (now, int(values.get("pending", "1") or 1))
-                    self._connected[name] = bool(node_connected(msg, name))
+                    self._connected[name] = bool(node_connected(msg, name, namespace))
 
     def ready(self) -> bool:
         """Every node has reported (it is up, its subscriptions made) and sees its upstream

@@ -426,20 +426,28 @@ def diagnostics_msg(node: Any, healths: list) -> Any:
     return arr
 
 
-def diagnostics_status(msg: Any, name: str) -> dict[str, str] | None:
-    """The values of the status named ``neurncd_ros: <name>`` in a DiagnosticArray."""
+def diagnostics_status(msg: Any, name: str, namespace: str | None = None
+                       ) -> dict[str, str] | None:
+    """The values of the status named ``neurncd_ros: <name>`` in a DiagnosticArray;
+    ``namespace`` (``/robot1``, ``/`` or ``''`` for the root): only a status of a node in
+    it (its ``hardware_id``, the node's fully qualified name), so that two graphs on one
+    domain, whose reports share /diagnostics, are told apart."""
+    want = None if namespace is None else namespace.rstrip("/")
     for st in msg.status:
-        if st.name == f"neurncd_ros: {name}":
+        if st.name == f"neurncd_ros: {name}" and (
+                want is None or not st.hardware_id
+                or st.hardware_id.rsplit("/", 1)[0] == want):
             return {kv.key: kv.value for kv in st.values}
     return None
 
 
-def node_connected(msg: Any, name: str) -> bool | None:
-    """What a DiagnosticArray says of node ``name``: None if it did not report in it, else
-    whether it sees its upstream node's publisher (``upstream_publishers``: the mapper the
-    embedding node's, discovery the mapper's; a node without it, once it reports). Before
-    that, what is published to it is lost to DDS discovery (bringup and the replay wait)."""
-    values = diagnostics_status(msg, name)
+def node_connected(msg: Any, name: str, namespace: str | None = None) -> bool | None:
+    """What a DiagnosticArray says of node ``name`` (in ``namespace``, as in
+    :func:`diagnostics_status`): None if it did not report in it, else whether it sees its
+    upstream node's publisher (``upstream_publishers``: the mapper the embedding node's,
+    discovery the mapper's; a node without it, once it reports). Before that, what is
+    published to it is lost to DDS discovery (bringup and the replay wait)."""
+    values = diagnostics_status(msg, name, namespace)
     if values is None:
         return None
     return int(values.get("upstream_publishers", "1") or 0) > 0

@@ -5,11 +5,13 @@ are no rosbag2 wheels): the raw CDR bytes are published as they are (rclpy
 takes serialized messages), so nothing is decoded on the way and any message
 type the bag holds is replayed. Before playing it waits, at most
 ``replay.wait_for_subscribers_s``, until the contract's input topics in the bag
-have subscribers; then it plays at ``rate`` from ``start_offset_s`` and exits 0
-at the end of the bag (``loop`` plays it again until stopped); with ``clock`` it
-publishes the bag's time on /clock as it goes, for nodes with ``use_sim_time``. A bag that
-cannot be read (missing, truncated, corrupt) ends it with exit code 1 and an
-error naming the file.
+have subscribers (with ``wait_for_graph``, also until the embedding, mapper and
+discovery nodes of its namespace report on /diagnostics that they are up and see their
+upstream node, as the launch file asks); then it plays at ``rate`` from
+``start_offset_s`` and exits 0 at the end of the bag (``loop`` plays it again until
+stopped); with ``clock`` it publishes the bag's time on /clock as it goes, for nodes with
+``use_sim_time``. A bag that cannot be read (missing, truncated, corrupt) ends it with
+exit code 1 and an error naming the file.
 """
 
 from __future__ import annotations
@@ -132,9 +134,13 @@ def make_node():
                     missing += [f"the {n} node up and connected (/diagnostics; "
                                 "replay.wait_for_graph)" for n in apart]
                     if self.pub_clock is not None:
-                        # nodes on sim time: a frame before their /clock matched is lost
-                        clocks = self.pub_clock.get_subscription_count()
-                        missing += [] if clocks else ["/clock (replay.wait_for_graph)"]
+                        # nodes on sim time: a frame before their /clock matched is lost;
+                        # the replay's own clock (use_sim_time) subscribes too: not counted
+                        me = (self.get_name(), self.get_namespace())
+                        clocks = sum((e.node_name, e.node_namespace) != me for e in
+                                     self.get_subscriptions_info_by_topic("/clock"))
+                        missing += ([] if clocks >= len(PIPELINE_NODES) else
+                                    ["/clock subscribed by the nodes (replay.wait_for_graph)"])
                         now += (clocks,)
                 if missing and not said:  # a wait of up to a minute is not silent
                     said = True
@@ -153,8 +159,8 @@ def make_node():
                                           f"{limit:g} s: playing anyway")
 
         def _on_diag(self, msg) -> None:
-            for name in PIPELINE_NODES:
-                state = node_connected(msg, name)
+            for name in PIPELINE_NODES:  # this graph's: the replay's namespace
+                state = node_connected(msg, name, self.get_namespace())
                 if state is not None:
                     self.connected[name] = state
 
