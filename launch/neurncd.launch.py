@@ -43,6 +43,7 @@ from launch.substitutions import (AndSubstitution, LaunchConfiguration, NotEqual
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
+from neurncd_ros.config import node_name
 from neurncd_ros.nodes.common import PIPELINE_NODES as NODES, ensure_dds_profile
 
 PACKAGE = "neurncd_ros"
@@ -60,10 +61,9 @@ def before_the_nodes(context, *args, **kwargs):
         raise RuntimeError(f"neurncd.launch.py: bag {bag} does not exist")
     # Each node's own view of the file, as rcl gives it (/** and the node's own entries):
     # another node's entry in a shared file is not this launch's concern.
-    namespace = LaunchConfiguration("namespace").perform(context).strip("/")
+    namespace = LaunchConfiguration("namespace").perform(context)
     names = [*NODES, "replay"] if bag else list(NODES)
-    views = [f"--node=/{namespace}/{name}" if namespace else f"--node=/{name}"
-             for name in names]
+    views = [f"--node={node_name(namespace, name)}" for name in names]
     check = subprocess.run([*neurncd_command(), "check-config", params_file, *views],
                            capture_output=True, text=True, start_new_session=True)
     if check.returncode != 0:

@@ -71,8 +71,7 @@ def cmd_check_config(args: argparse.Namespace) -> int:
             try:
                 cfg = config_mod.load(args.file, node=node)
                 listed = []
-                if node is None or node.rsplit("/", 1)[-1] == "embedding":
-                    # what the embedding node (and `run`) would refuse at start
+                if config_mod.checks_backbone(node):  # the embedding node's refusal
                     listed = [f"{args.file}: backbone: {text}"
                               for text in setup_problems(cfg.backbone)]
             except ConfigError as err:

@@ -103,7 +103,6 @@ SECTIONS: dict[str, tuple[str, str]] = {
 }
 
 
-
 def default_config() -> Path:
     """The shipped parameter file: share/neurncd_ros/config/neurncd.yaml of a colcon
     install, else the source tree's config/neurncd.yaml (the nodes' default too)."""
@@ -350,6 +349,19 @@ def node_entry_applies(entry: str, node: str) -> bool:
     them: a leading ``/`` added, each ``/*`` one name token, ``/**`` any number of them."""
     name = entry if entry.startswith("/") else "/" + entry
     return re.fullmatch(name.replace("/*", r"(/\w+)"), node) is not None
+
+
+def node_name(namespace: str, name: str) -> str:
+    """The fully qualified name of node ``name`` in ``namespace`` (``robot1``, ``/robot1``,
+    ``''`` for the root): ``/robot1/mapper``."""
+    namespace = namespace.strip("/")
+    return f"/{namespace}/{name}" if namespace else f"/{name}"
+
+
+def checks_backbone(node: str | None) -> bool:
+    """Whether the view of ``node`` (a fully qualified name; None: every entry, the offline
+    tool's) is checked for the backbone's setup: the embedding node's refusal at start."""
+    return node is None or node.rsplit("/", 1)[-1] == "embedding"
 
 
 def parameters_from_yaml(text: str, source: str = "<yaml>", node: str | None = None

@@ -185,39 +185,36 @@ def test_replay_waits_for_the_graph_downstream_when_asked(ros_node, small_bag, t
                                                values=values))
         pub.publish(msg)
 
+    def replay(name: str, limit: float, until=lambda: True) -> str:
+        """Run a replay waiting for the graph at most ``limit`` s to its end (and then
+        ``until``); its log."""
+        log = tmp_path / f"{name}.log"
+        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
+                      f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
+                      f"replay.wait_for_subscribers_s:={limit}"], ros_env(domain), log)
+        try:
+            assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
+            assert proc.returncode == 0, log.read_text()
+            assert spin_until(node, until, 30), log.read_text()
+        finally:
+            stop(proc)
+        return log.read_text()
+
     timer = node.create_timer(0.2, report)
     try:
         reports.update(embedding=("/embedding", None), mapper=("/mapper", "0"),
                        discovery=("/robot2/discovery", "1"))
-        log = tmp_path / "waiting.log"
-        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                      f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
-                      "replay.wait_for_subscribers_s:=4.0"], ros_env(domain), log)
-        try:
-            assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
-            assert proc.returncode == 0, log.read_text()
-        finally:
-            stop(proc)
-        warning = [line for line in log.read_text().splitlines() if "playing anyway" in line]
-        assert len(warning) == 1, log.read_text()
+        text = replay("waiting", 4.0)
+        warning = [line for line in text.splitlines() if "playing anyway" in line]
+        assert len(warning) == 1, text
         assert "the mapper node" in warning[0] and "the discovery node" in warning[0], warning
         assert "the embedding node" not in warning[0], warning
         # All three connected, in the replay's namespace: it plays at once.
         reports.update(mapper=("/mapper", "1"), discovery=("/discovery", "1"))
         second: list = []  # a subscription of its own: the first replay's frames never reach it
         node.create_subscription(Image, "/camera/depth/image_raw", second.append, 20)
-        log = tmp_path / "graph.log"
-        proc = start(["-m", "neurncd_ros.nodes.replay", "--ros-args", "-p",
-                      f"replay.bag:={small_bag}", "-p", "replay.wait_for_graph:=true", "-p",
-                      "replay.wait_for_subscribers_s:=600.0"], ros_env(domain), log)
-        try:
-            assert spin_until(node, lambda: proc.poll() is not None, 300), log.read_text()
-            assert proc.returncode == 0, log.read_text()
-            assert spin_until(node, lambda: len(second) == 15, 30), (len(second),
-                                                                       log.read_text())
-        finally:
-            stop(proc)
-        assert "playing anyway" not in log.read_text()
+        text = replay("graph", 600.0, lambda: len(second) == 15)
+        assert len(second) == 15 and "playing anyway" not in text, (len(second), text)
     finally:
         node.destroy_timer(timer)
 

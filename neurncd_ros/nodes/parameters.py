@@ -184,17 +184,18 @@ def started_configuration(params_file: str | Path, ros_args: list[str],
     starting any node, so a bad value is one error naming where it was given, not one per
     node (or one node's death after the others have started)."""
     from .. import config as config_mod
+    from ..core.backbone.backbone import setup_problems
 
-    namespace = node_namespace(ros_args)
-    views = [f"/{namespace}/{n}" if namespace else f"/{n}" for n in nodes] or [None]
-    configs = []
+    given = {key: config_mod.read_yaml(text, f"-p {key}:={text}")
+             for key, text in given_with_p(ros_args).items()}  # -p: every node's
+    views = [config_mod.node_name(node_namespace(ros_args), n) for n in nodes] or [None]
+    first = None
     for view in views:
         overrides: dict[str, Any] = {}
         for path in params_files(ros_args):
             overrides.update((k, v) for k, v in _file_parameters(path, view).items()
                              if not isinstance(v, dict))
-        for key, text in given_with_p(ros_args).items():
-            overrides[key] = config_mod.read_yaml(text, f"-p {key}:={text}")
+        overrides.update(given)
         overrides = {k: v for k, v in overrides.items() if not config_mod.ros_builtin(k)}
         named = f" (node {view})" if view else ""
         try:
@@ -203,14 +204,11 @@ def started_configuration(params_file: str | Path, ros_args: list[str],
             key = str(err).removeprefix("override ").split("=", 1)[0].split(":", 1)[0]
             raise ConfigError(f"{err}{named}{parameter_origin(key + ':', ros_args)}"
                               ) from None
-        if view is None or view.rsplit("/", 1)[-1] == "embedding":
-            from ..core.backbone.backbone import setup_problems
-
-            problems = setup_problems(cfg.backbone)  # the embedding node's refusal at start
-            if problems:
-                raise ConfigError(f"backbone: {problems[0]}{named}")
-        configs.append(cfg)
-    return configs[0]
+        problems = setup_problems(cfg.backbone) if config_mod.checks_backbone(view) else []
+        if problems:
+            raise ConfigError(f"backbone: {problems[0]}{named}")
+        first = cfg if first is None else first
+    return first
 
 
 def _file_parameters(path: str, node: str | None = None) -> dict[str, Any]:

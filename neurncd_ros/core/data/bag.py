@@ -391,7 +391,8 @@ def recording_file(src: Path, out: Path, suffix: str) -> Path:
     kind in the bag folder ``src``. Refuses a missing file, and an ``out`` that is the
     recording itself (or a hard link to it): a recovery writes a new file."""
     if src.is_dir():
-        if not _storage_files(src):
+        stored = _storage_files(src)
+        if not stored:
             packed = sorted(p.name for p in src.glob("*.zstd"))
             if packed:  # rosbag2's file compression (ros2 bag record --compression-mode file)
                 raise BagError(f"{src}: its recording is compressed ({', '.join(packed)}): "
@@ -399,7 +400,7 @@ def recording_file(src: Path, out: Path, suffix: str) -> Path:
                                f"first (zstd -d {src / packed[0]})")
             raise BagError(f"{src}: a folder with no recording in it (no .mcap or .db3 "
                            "file)")
-        files = [f for f in _storage_files(src) if f.endswith(suffix)]
+        files = [f for f in stored if f.endswith(suffix)]
         if len(files) != 1:
             raise BagError(f"{_where(src)}: recover needs one {suffix} file, the folder "
                            f"holds {len(files)}")
